@@ -1,0 +1,213 @@
+"""The `vinetwin` command. Each subcommand is a frozen dataclass parsed by tyro; its `run()`
+imports what it needs, so `vinetwin --help` stays fast."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from vinetwin.errors import VinetwinError
+
+log = logging.getLogger("vinetwin")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Sample:
+    """Grow a procedural dormant grapevine and write it as a twin folder."""
+
+    out: Path
+    """Twin folder to create (e.g. vine7.twin)."""
+    seed: int = 0
+    """Random seed: the same seed gives the same vine."""
+    cordons: Literal[1, 2] = 2
+    """One cordon arm (unilateral) or two (bilateral)."""
+    edge: float = 0.002
+    """Target triangle edge length of the tube mesh, metres (smaller: denser mesh)."""
+    cut_points: int = 4
+    """How many cut-point candidates become cut points with a default pruning pose."""
+    overwrite: bool = False
+    """Replace a twin already in OUT."""
+
+    def run(self) -> None:
+        from vinetwin.twin.generator import VineParams, generate_vine
+        from vinetwin.twin.model import twin_from_skeleton
+
+        sk = generate_vine(self.seed, VineParams(cordons=self.cordons))
+        twin = twin_from_skeleton(
+            self.out,
+            sk,
+            edge=self.edge,
+            source={
+                "generator": "vinetwin.twin.generator",
+                "seed": self.seed,
+                "cordons": self.cordons,
+            },
+            cut_points=self.cut_points,
+            overwrite=self.overwrite,
+        )
+        _summary(twin)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImportVine:
+    """Import a digitised plant skeleton (hydroshoot digit.input or a cylinder list) as a twin."""
+
+    file: Annotated[Path, tyro.conf.Positional]
+    """Skeleton file to import."""
+    out: Path
+    """Twin folder to create."""
+    format: Literal["auto", "hydroshoot", "cylinders"] = "auto"
+    """File format; auto detects it from the first lines."""
+    edge: float = 0.003
+    """Target triangle edge length of the tube mesh, metres."""
+    cut_points: int = 0
+    """How many cut-point candidates (hydroshoot shoots) become cut points with a pose."""
+    overwrite: bool = False
+    """Replace a twin already in OUT."""
+
+    def run(self) -> None:
+        from vinetwin.twin.importers import detect_format, load_skeleton
+        from vinetwin.twin.model import twin_from_skeleton
+
+        fmt = detect_format(self.file) if self.format == "auto" else self.format
+        sk = load_skeleton(self.file, fmt)
+        twin = twin_from_skeleton(
+            self.out,
+            sk,
+            edge=self.edge,
+            caps="round" if fmt == "hydroshoot" else "flat",
+            source={"importer": fmt, "file": str(self.file)},
+            cut_points=self.cut_points,
+            overwrite=self.overwrite,
+        )
+        _summary(twin)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Info:
+    """Validate a twin folder and print what it holds."""
+
+    twin: Annotated[Path, tyro.conf.Positional]
+    """Twin folder."""
+    check_mesh: bool = True
+    """Also read and check the mesh."""
+
+    def run(self) -> None:
+        from vinetwin.twin.model import Twin
+
+        twin = Twin.load(self.twin)
+        _summary(twin, mesh=self.check_mesh)
+
+
+def _bundled_sample() -> Path:
+    """The bundled sample twin: `samples/vine_bilateral.twin` of the source checkout."""
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        cand = parent / "samples" / "vine_bilateral.twin"
+        if (cand / "twin.json").exists():
+            return cand
+    raise VinetwinError(
+        "the bundled sample twin was not found (it ships in the source checkout under samples/); "
+        "make one with: vinetwin sample --out vine.twin"
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Demo:
+    """The main job, headless: copy the bundled sample twin to OUT and run the pipeline on it."""
+
+    out: Path = Path("out/demo")
+    """Folder for the demo's outputs (the bundled sample itself is never modified)."""
+
+    def run(self) -> None:
+        import shutil
+
+        from vinetwin.twin.model import Twin
+
+        src = _bundled_sample()
+        dst = self.out / src.name
+        if dst.exists():
+            shutil.rmtree(dst)
+        self.out.mkdir(parents=True, exist_ok=True)
+        shutil.copytree(src, dst)
+        twin = Twin.load(dst)
+        _summary(twin)
+
+
+def _summary(twin: object, mesh: bool = True) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from vinetwin.twin.model import Twin
+
+    assert isinstance(twin, Twin)
+    con = Console()
+    con.print(f"[bold]{twin.name}[/] at {twin.root}")
+    if mesh:
+        m = twin.load_mesh()
+        ext = m.bounds[1] - m.bounds[0]
+        con.print(
+            f"mesh {twin.mesh_file}: {len(m.vertices)} vertices, {len(m.faces)} triangles, "
+            f"extent {ext[0]:.3f} x {ext[1]:.3f} x {ext[2]:.3f} m"
+        )
+    con.print(f"camera {twin.camera.name}: {twin.camera.width}x{twin.camera.height}")
+    table = Table("pose", "cut point", "standoff (m)", "ICP variant", "camera position (m)")
+    for p in twin.poses:
+        t = p.T_vine_camera[:3, 3]
+        table.add_row(
+            p.id,
+            p.cut_point,
+            f"{p.standoff:.3f}",
+            p.icp_variant,
+            f"{t[0]:+.3f} {t[1]:+.3f} {t[2]:+.3f}",
+        )
+    con.print(f"{len(twin.cut_points)} cut points, {len(twin.poses)} pruning poses")
+    if twin.poses:
+        con.print(table)
+
+
+COMMANDS: dict[str, type] = {
+    "sample": Sample,
+    "import-vine": ImportVine,
+    "info": Info,
+    "demo": Demo,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `vinetwin` command; returns the exit status."""
+    args = sys.argv[1:] if argv is None else argv
+    cmd = tyro.extras.subcommand_cli_from_dict(
+        {name: cls for name, cls in COMMANDS.items()},
+        args=args,
+        description="vinetwin: reference clouds and digital twins for robotic vine pruning.",
+    )
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        cmd.run()
+    except VinetwinError as exc:
+        log.error("%s", exc)
+        return 2
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+    return 0
+
+
+def resolved_config(cmd: object) -> dict[str, object]:
+    """The subcommand's settings as plain JSON values (written beside a run's outputs)."""
+    assert dataclasses.is_dataclass(cmd)
+    return {
+        k: (str(v) if isinstance(v, Path) else v)
+        for k, v in dataclasses.asdict(cmd).items()  # type: ignore[arg-type]
+    }
+
+
+if __name__ == "__main__":
+    sys.exit(main())

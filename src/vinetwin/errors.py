@@ -1,0 +1,55 @@
+"""The exception hierarchy of vinetwin: every error the package raises on purpose is a
+`VinetwinError`, so a caller (the CLI, the web app, a servo loop) can catch one type and show
+its message, which says what was wrong and what would be valid."""
+
+from __future__ import annotations
+
+
+class VinetwinError(Exception):
+    """Root of every error raised on purpose by vinetwin."""
+
+
+class InputError(VinetwinError, ValueError):
+    """An argument to a public function has the wrong shape, type or value."""
+
+
+class PoseError(InputError):
+    """A 4x4 pose is not a finite rigid transform."""
+
+
+class CameraError(InputError):
+    """A camera model is inconsistent (non-positive focal length, depth range, size)."""
+
+
+class TwinError(VinetwinError):
+    """A twin folder or its twin.json cannot be read, validated or written."""
+
+
+class TwinFieldError(TwinError):
+    """A field of twin.json is missing or holds a bad value; `field` is its path."""
+
+    def __init__(self, path: str, field: str, message: str) -> None:
+        self.path = path
+        self.field = field
+        super().__init__(f"{path}: field '{field}': {message}")
+
+
+class TwinVersionError(TwinError):
+    """twin.json was written by a newer format version than this vinetwin can read."""
+
+
+class MeshError(VinetwinError):
+    """A mesh is missing, unreadable, empty or holds non-finite vertices."""
+
+
+class ImportFormatError(VinetwinError):
+    """A skeleton file (hydroshoot digit.input, cylinder list) cannot be parsed."""
+
+
+class BackendUnavailable(VinetwinError):
+    """A rendering backend cannot start here (no EGL, library missing); `reason` says why."""
+
+    def __init__(self, backend: str, reason: str) -> None:
+        self.backend = backend
+        self.reason = reason
+        super().__init__(f"render backend '{backend}' is unavailable: {reason}")

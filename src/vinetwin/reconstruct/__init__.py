@@ -1,0 +1,1 @@
+"""Captured frames to a vine mesh (issue: reconstruct). Not implemented yet."""

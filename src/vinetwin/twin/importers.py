@@ -1,0 +1,307 @@
+"""Importers of real plant skeletons into vinetwin skeletons (then tube meshes, then twins).
+
+Formats:
+
+- **hydroshoot `digit.input`** (openalea/hydroshoot): `;`-separated text with a header; columns
+  plant, axis (`tronc`: 0 trunk, 1, 2 cordons or arms; or `BASE`), element (internode along the
+  axis; `6.A`, `1.a` name pruning complexes, i.e. spurs), cane (`sarment`), shoot (`rameau`;
+  `1.2_1` is a lateral on shoot 1 at its internode 2), rank along the shoot, X Y Z in
+  centimetres at the upper end of the internode, and optionally `Diam`, the stem diameter there,
+  in centimetres. Each row's parent is the previous node on the same axis; the first node of an
+  axis hangs from the node it grows out of (see `_parent_key`).
+- **cylinder lists** (e.g. CearLab's Tree-Models-Library): one or more blocks, each a line N
+  then N rows `x y z dx dy dz r` in metres: start point, axis vector (its length is the cylinder's length),
+  radius. Consecutive cylinders whose start is the previous one's end form one branch.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from vinetwin.errors import ImportFormatError
+from vinetwin.frames import Array
+from vinetwin.twin.skeleton import Branch, BranchKind, CutCandidate, Skeleton
+
+SkeletonFormat = Literal["hydroshoot", "cylinders"]
+
+# Diameters (m) used when a hydroshoot file has no Diam column, by kind, base to tip.
+_DEFAULT_DIAMETER: dict[str, tuple[float, float]] = {
+    "trunk": (0.045, 0.035),
+    "cordon": (0.030, 0.020),
+    "spur": (0.018, 0.015),
+    "cane": (0.014, 0.012),
+    "shoot": (0.010, 0.005),
+}
+
+
+def detect_format(path: str | Path) -> SkeletonFormat:
+    """Guesses the format of a skeleton file from its first lines."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            head = [fh.readline() for _ in range(2)]
+    except OSError as exc:
+        raise ImportFormatError(f"{path}: cannot read: {exc}") from exc
+    if ";" in head[0]:
+        return "hydroshoot"
+    first = head[0].split()
+    second = head[1].split() if len(head) > 1 else []
+    if len(first) == 1 and first[0].isdigit() and len(second) == 7:
+        return "cylinders"
+    raise ImportFormatError(
+        f"{path}: unknown skeleton format; expected a hydroshoot digit.input (';'-separated with "
+        f"a header) or a cylinder list (a count, then rows 'x y z dx dy dz r')"
+    )
+
+
+def load_skeleton(path: str | Path, fmt: SkeletonFormat | None = None) -> Skeleton:
+    """Reads a skeleton file in `fmt` (detected when None)."""
+    fmt = fmt or detect_format(path)
+    if fmt == "hydroshoot":
+        return read_hydroshoot(path)
+    if fmt == "cylinders":
+        return read_cylinders(path)
+    raise ImportFormatError(
+        f"unknown skeleton format '{fmt}'; choose one of: hydroshoot, cylinders"
+    )
+
+
+# ----------------------------------------------------------------------------- hydroshoot
+@dataclass
+class _Node:
+    row: int
+    axis: str
+    element: str
+    cane: str
+    shoot: str
+    rank: str
+    xyz: Array
+    diameter: float | None
+
+
+def _lead_int(text: str) -> str:
+    m = re.match(r"\d+", text)
+    return m.group(0) if m else text
+
+
+def _axis_key(n: _Node) -> tuple[str, ...]:
+    """Rows sharing this key form one polyline (an 'axis' of the plant)."""
+    if n.shoot != "0":
+        return ("shoot", n.axis, n.element, n.cane, n.shoot)
+    if n.cane != "0":
+        return ("cane", n.axis, n.element, n.cane)
+    if not re.fullmatch(r"\d+", n.element) and re.match(r"\d+\D", n.element):
+        if re.fullmatch(r"\d+\.[A-Za-z]+", n.element):
+            return ("spur", n.axis, n.element)
+    return ("main", n.axis)
+
+
+def _parent_key(n: _Node) -> tuple[str, ...] | None:
+    """Node key (see `_node_key`) of the node the first node of n's axis grows from."""
+    kind = _axis_key(n)[0]
+    if kind == "shoot":
+        m = re.fullmatch(r"(\w+)\.(\d+)_\d+", n.shoot)
+        if m:  # lateral: grows from node `rank` of shoot `m[1]`
+            return (n.axis, n.element, n.cane, m.group(1), m.group(2))
+        return (n.axis, n.element, n.cane, "0", "0")
+    if kind == "cane":
+        return (n.axis, n.element, "0", "0", "0")
+    if kind == "spur":
+        return (n.axis, _lead_int(n.element), "0", "0", "0")
+    return None
+
+
+def _node_key(n: _Node) -> tuple[str, ...]:
+    return (
+        n.axis,
+        _lead_int(n.element) if _axis_key(n)[0] == "main" else n.element,
+        n.cane,
+        n.shoot,
+        n.rank,
+    )
+
+
+def read_hydroshoot(path: str | Path) -> Skeleton:
+    """Reads a hydroshoot `digit.input` file (centimetres) into a skeleton in metres."""
+    try:
+        lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError as exc:
+        raise ImportFormatError(f"{path}: cannot read: {exc}") from exc
+    lines = [ln.strip() for ln in lines if ln.strip()]
+    if len(lines) < 3:
+        raise ImportFormatError(f"{path}: a hydroshoot file needs a header and at least 2 rows")
+    header = [h.strip().lower() for h in lines[0].split(";")]
+    if len(header) < 9 or header[6:9] != ["x", "y", "z"]:
+        raise ImportFormatError(
+            f"{path}: header must have 9 or 10 ';'-separated columns with X;Y;Z in columns "
+            f"7-9, got {lines[0]!r}"
+        )
+    has_diam = len(header) >= 10
+    base: Array | None = None
+    nodes: list[_Node] = []
+    for i, ln in enumerate(lines[1:], start=2):
+        f = [c.strip() for c in ln.split(";")]
+        if len(f) < len(header):
+            raise ImportFormatError(f"{path}:{i}: expected {len(header)} fields, got {len(f)}")
+        try:
+            xyz = np.array([float(f[6]), float(f[7]), float(f[8])]) / 100.0
+            diam = float(f[9]) / 100.0 if has_diam and f[9] not in ("", "NA") else None
+        except ValueError as exc:
+            raise ImportFormatError(f"{path}:{i}: bad number: {exc}") from exc
+        if not np.all(np.isfinite(xyz)):
+            raise ImportFormatError(f"{path}:{i}: non-finite coordinate")
+        if f[1].upper() == "BASE":
+            base = xyz
+            continue
+        nodes.append(_Node(i, f[1], f[2], f[3], f[4], f[5], xyz, diam))
+    if not nodes:
+        raise ImportFormatError(f"{path}: no plant nodes")
+
+    by_key = {_node_key(n): n for n in nodes}
+    axes: dict[tuple[str, ...], list[_Node]] = {}
+    for n in nodes:
+        axes.setdefault(_axis_key(n), []).append(n)
+    main_axes = sorted((k for k in axes if k[0] == "main"), key=lambda k: int(_lead_int(k[1]) or 0))
+    trunk_key = main_axes[0] if main_axes else None
+
+    sk = Skeleton()
+    branch_of: dict[tuple[str, ...], int] = {}
+    placed: list[Array] = []
+
+    def nearest_placed(p: Array) -> Array | None:
+        if not placed:
+            return None
+        pts = np.concatenate(placed)
+        return pts[np.argmin(np.linalg.norm(pts - p, axis=1))]
+
+    def add_axis(key: tuple[str, ...]) -> None:
+        members = axes[key]
+        kind = key[0]
+        first = members[0]
+        start: Array | None
+        parent_idx = -1
+        if kind == "main":
+            if key == trunk_key:
+                start = base
+            else:  # a cordon or arm grows from the top of the trunk
+                start = axes[trunk_key][-1].xyz if trunk_key else None
+                parent_idx = branch_of.get(trunk_key, -1) if trunk_key else -1
+        else:
+            pk = _parent_key(first)
+            parent = by_key.get(pk) if pk else None
+            start = parent.xyz if parent is not None else nearest_placed(first.xyz)
+            if parent is not None:
+                parent_idx = branch_of.get(_axis_key(parent), -1)
+        pts = [m.xyz for m in members]
+        diams = [m.diameter for m in members]
+        if start is not None and np.linalg.norm(start - pts[0]) > 1e-9:
+            pts = [start, *pts]
+            diams = [diams[0], *diams]
+        label = "/".join(key[1:]) if len(key) > 1 else kind
+        bkind: BranchKind = {"main": "trunk" if key == trunk_key else "cordon"}.get(kind, kind)  # type: ignore[assignment]
+        if all(d is not None for d in diams):
+            radii = 0.5 * np.asarray(diams, dtype=np.float64)
+        else:
+            d0, d1 = _DEFAULT_DIAMETER[bkind]
+            radii = 0.5 * np.linspace(d0, d1, len(pts))
+        if len(pts) < 2:
+            # a single node with nothing to hang from: a short stub along +Z
+            pts = [pts[0], pts[0] + np.array([0, 0, 2 * radii[0] + 1e-3])]
+            radii = np.repeat(radii[:1], 2)
+        branch_of[key] = len(sk.branches)
+        sk.branches.append(
+            Branch(np.asarray(pts), np.asarray(radii), kind=bkind, parent=parent_idx, label=label)
+        )
+        placed.append(np.asarray(pts))
+
+    order = {"main": 0, "spur": 1, "cane": 2, "shoot": 3}
+    for key in sorted(axes, key=lambda k: (order[k[0]], min(n.row for n in axes[k]))):
+        add_axis(key)
+
+    # Cut-point candidates: on shoots (next year's canes) whose base has at least 3 nodes,
+    # 30% of the way from the second node to the third (a two-bud spur).
+    for key, idx in branch_of.items():
+        if key[0] != "shoot" or "_" in key[-1]:
+            continue
+        b = sk.branches[idx]
+        if len(b.points) < 4:
+            continue
+        p2, p3 = b.points[2], b.points[3]
+        axis = p3 - p2
+        norm = np.linalg.norm(axis)
+        if norm < 1e-6:
+            continue
+        sk.candidates.append(
+            CutCandidate(
+                point=p2 + 0.3 * axis,
+                cane_axis=axis / norm,
+                branch=idx,
+                radius=float(0.5 * (b.radii[2] + b.radii[3])),
+                label=b.label,
+            )
+        )
+    return sk
+
+
+# ----------------------------------------------------------------------------- cylinders
+def read_cylinders(path: str | Path) -> Skeleton:
+    """Reads a cylinder list (metres) into a skeleton; chains of touching cylinders become
+    one branch each."""
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace").split()
+    except OSError as exc:
+        raise ImportFormatError(f"{path}: cannot read: {exc}") from exc
+    if not text:
+        raise ImportFormatError(f"{path}: empty file")
+    # One or more blocks, each a count N followed by N rows of 7 numbers.
+    blocks: list[Array] = []
+    pos = 0
+    while pos < len(text):
+        try:
+            n = int(text[pos])
+        except ValueError as exc:
+            raise ImportFormatError(
+                f"{path}: expected a cylinder count at token {pos + 1}, got {text[pos]!r}"
+            ) from exc
+        pos += 1
+        chunk = text[pos : pos + 7 * n]
+        if n < 0 or len(chunk) != 7 * n:
+            raise ImportFormatError(
+                f"{path}: a block announces {n} cylinders, so {7 * n} numbers should follow; "
+                f"got {len(chunk)}"
+            )
+        try:
+            blocks.append(np.array([float(v) for v in chunk]).reshape(n, 7))
+        except ValueError as exc:
+            raise ImportFormatError(f"{path}: bad number: {exc}") from exc
+        pos += 7 * n
+    cyl = np.concatenate(blocks) if blocks else np.empty((0, 7))
+    n = len(cyl)
+    if n == 0:
+        raise ImportFormatError(f"{path}: no cylinders")
+    if not np.all(np.isfinite(cyl)):
+        raise ImportFormatError(f"{path}: non-finite value")
+    if np.any(cyl[:, 6] <= 0):
+        bad = int(np.argmax(cyl[:, 6] <= 0))
+        raise ImportFormatError(f"{path}: cylinder {bad + 1} has a non-positive radius")
+    starts, axes, radii = cyl[:, :3], cyl[:, 3:6], cyl[:, 6]
+    ends = starts + axes
+    sk = Skeleton()
+    i = 0
+    while i < n:
+        j = i
+        while (
+            j + 1 < n
+            and np.linalg.norm(starts[j + 1] - ends[j]) < 1e-6
+            and abs(radii[j + 1] - radii[j]) <= 0.5 * radii[j]
+        ):
+            j += 1
+        pts = np.concatenate([starts[i : i + 1], ends[i : j + 1]])
+        r = np.concatenate([radii[i : i + 1], radii[i : j + 1]])
+        sk.branches.append(Branch(pts, r, kind="branch", label=f"cyl{i + 1}-{j + 1}"))
+        i = j + 1
+    return sk

@@ -1,0 +1,679 @@
+"""The twin folder: a vine mesh, its camera, cut points and pruning poses, on disk.
+
+```
+NAME.twin/
+  twin.json        format version, units, mesh file, T_world_vine, camera, T_flange_camera,
+                   cut points, pruning poses, perception settings, provenance
+  vine.ply         the mesh, metres, vine frame
+  skeleton.json    optional: branches and cut-point candidates (generator, importers)
+  references/      <pose_id>.ply, .pcd, .json (written by `vinetwin export`)
+  validation/      simulated servo results per pose
+```
+
+Rules: twin.json is validated on load and every error names the field and the bad value; a file
+written by a newer format version is refused; unknown fields survive a load/save round trip;
+every write goes to a temporary file in the same folder, is flushed, then renamed over the old one,
+so a crash during a save leaves the previous file intact.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import math
+import os
+import re
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+import vinetwin
+from vinetwin.camera import CameraModel, d405
+from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
+from vinetwin.errors import (
+    CameraError,
+    InputError,
+    MeshError,
+    TwinError,
+    TwinFieldError,
+    TwinVersionError,
+)
+from vinetwin.frames import Array, check_pose, make_pose
+from vinetwin.twin.poses import Approach, approach_of, default_approach, pruning_pose
+from vinetwin.twin.skeleton import Skeleton
+
+if TYPE_CHECKING:
+    import trimesh
+
+FORMAT_NAME = "vinetwin-twin"
+FORMAT_VERSION = 1
+TWIN_FILE = "twin.json"
+_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+#: Default hand-eye transform: a D405 on the Panda hand, 5 cm off the flange axis and 4 cm along
+#: it, looking along the flange's +Z. Replace it with your calibration.
+DEFAULT_T_FLANGE_CAMERA: Array = make_pose(np.eye(3), [0.05, 0.0, 0.04])
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Writes `data` to `path` through a flushed temporary file and a rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+# ----------------------------------------------------------------------------- entities
+@dataclass
+class CutPoint:
+    """A place on a cane where the pruner cuts, in the vine frame."""
+
+    id: str
+    point: Array
+    cane_axis: Array
+    name: str = ""
+    source: str = "manual"
+    """Where it came from: manual (a person), candidate (generator/importer), click (web)."""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            **self.extra,
+            "id": self.id,
+            "name": self.name,
+            "point": [float(v) for v in self.point],
+            "cane_axis": [float(v) for v in self.cane_axis],
+            "source": self.source,
+        }
+
+
+@dataclass
+class PruningPose:
+    """Where the camera must be for one cut: T_vine_camera with its approach description."""
+
+    id: str
+    cut_point: str
+    T_vine_camera: Array
+    standoff: float
+    icp_variant: str = "point_to_plane"
+    name: str = ""
+    approach: Approach = field(default_factory=Approach)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            **self.extra,
+            "id": self.id,
+            "name": self.name,
+            "cut_point": self.cut_point,
+            "T_vine_camera": np.asarray(self.T_vine_camera).tolist(),
+            "standoff": float(self.standoff),
+            "icp_variant": self.icp_variant,
+            "approach": {
+                "azimuth": self.approach.azimuth,
+                "elevation": self.approach.elevation,
+                "roll": self.approach.roll,
+            },
+        }
+
+
+# ----------------------------------------------------------------------------- validation
+class _Fields:
+    """Typed getters over parsed JSON that raise TwinFieldError naming the field path."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = str(path)
+
+    def fail(self, where: str, message: str) -> TwinFieldError:
+        return TwinFieldError(self.path, where, message)
+
+    def obj(self, data: Any, where: str) -> dict[str, Any]:
+        if not isinstance(data, dict):
+            raise self.fail(where, f"must be an object, got {type(data).__name__}")
+        return data
+
+    def req(self, data: dict[str, Any], key: str, where: str) -> Any:
+        if key not in data:
+            raise self.fail(f"{where}{key}", "is missing")
+        return data[key]
+
+    def string(self, data: dict[str, Any], key: str, where: str, default: str | None = None) -> str:
+        if default is not None and key not in data:
+            return default
+        v = self.req(data, key, where)
+        if not isinstance(v, str):
+            raise self.fail(f"{where}{key}", f"must be a string, got {v!r}")
+        return v
+
+    def number(
+        self, data: dict[str, Any], key: str, where: str, default: float | None = None
+    ) -> float:
+        if default is not None and key not in data:
+            return default
+        v = self.req(data, key, where)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise self.fail(f"{where}{key}", f"must be a finite number, got {v!r}")
+        return float(v)
+
+    def vec3(self, data: dict[str, Any], key: str, where: str, unit: bool = False) -> Array:
+        v = self.req(data, key, where)
+        arr = self._numbers(v, f"{where}{key}", (3,))
+        if unit:
+            n = float(np.linalg.norm(arr))
+            if n < 1e-9:
+                raise self.fail(f"{where}{key}", "must be a non-zero direction")
+            arr = arr / n
+        return arr
+
+    def pose(self, data: dict[str, Any], key: str, where: str) -> Array:
+        v = self.req(data, key, where)
+        arr = self._numbers(v, f"{where}{key}", (4, 4))
+        try:
+            return check_pose(arr, f"{where}{key}", atol=1e-5)
+        except InputError as exc:
+            raise self.fail(f"{where}{key}", str(exc).split(" ", 1)[1]) from exc
+
+    def _numbers(self, v: Any, where: str, shape: tuple[int, ...]) -> Array:
+        try:
+            arr = np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise self.fail(where, f"must be numbers of shape {shape}, got {v!r:.80}") from exc
+        if arr.shape != shape:
+            raise self.fail(where, f"must have shape {shape}, got {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise self.fail(where, f"holds a non-finite value (NaN or inf): {arr.tolist()}")
+        return arr
+
+
+_TOP_KEYS = {
+    "format",
+    "format_version",
+    "units",
+    "name",
+    "mesh",
+    "skeleton",
+    "T_world_vine",
+    "camera",
+    "T_flange_camera",
+    "cut_points",
+    "pruning_poses",
+    "perception",
+    "provenance",
+}
+
+
+# ----------------------------------------------------------------------------- the twin
+@dataclass
+class Twin:
+    """A twin folder loaded in memory. Mutate through the methods, then `save()`."""
+
+    root: Path
+    name: str
+    mesh_file: str = "vine.ply"
+    skeleton_file: str | None = None
+    T_world_vine: Array = field(default_factory=lambda: np.eye(4))
+    camera: CameraModel = field(default_factory=d405)
+    T_flange_camera: Array = field(default_factory=lambda: DEFAULT_T_FLANGE_CAMERA.copy())
+    cut_points: list[CutPoint] = field(default_factory=list)
+    poses: list[PruningPose] = field(default_factory=list)
+    perception: PerceptionConfig = field(default_factory=PerceptionConfig)
+    provenance: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def json_path(self) -> Path:
+        return self.root / TWIN_FILE
+
+    @property
+    def mesh_path(self) -> Path:
+        return self.root / self.mesh_file
+
+    @property
+    def references_dir(self) -> Path:
+        return self.root / "references"
+
+    @property
+    def validation_dir(self) -> Path:
+        return self.root / "validation"
+
+    # ------------------------------------------------------------------ creation
+    @classmethod
+    def create(
+        cls,
+        root: str | Path,
+        vertices: Any,
+        faces: Any,
+        *,
+        name: str | None = None,
+        camera: CameraModel | None = None,
+        skeleton: Skeleton | None = None,
+        source: dict[str, Any] | None = None,
+        overwrite: bool = False,
+    ) -> Twin:
+        """Creates a twin folder holding a mesh (vertices (V, 3) metres, faces (F, 3)).
+
+        Refuses to write into a folder that already holds a twin.json unless `overwrite`.
+        """
+        root = Path(root)
+        if (root / TWIN_FILE).exists() and not overwrite:
+            raise TwinError(f"{root}: already holds a twin; pass overwrite=True to replace it")
+        V = np.asarray(vertices, dtype=np.float64)
+        F = np.asarray(faces)
+        _check_mesh_arrays(V, F, str(root))
+        root.mkdir(parents=True, exist_ok=True)
+        twin = cls(root=root, name=name or root.name.removesuffix(".twin"), camera=camera or d405())
+        twin.write_mesh(V, F)
+        if skeleton is not None:
+            twin.skeleton_file = "skeleton.json"
+            atomic_write_text(root / "skeleton.json", json.dumps(skeleton.to_json()))
+        twin.provenance = {
+            "created_by": f"vinetwin {vinetwin.__version__}",
+            "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "source": source or {},
+        }
+        twin.save()
+        return twin
+
+    def write_mesh(self, vertices: Array, faces: np.ndarray) -> None:
+        """Writes the mesh as binary PLY (float32 vertices, metres), atomically."""
+        import trimesh
+
+        _check_mesh_arrays(vertices, faces, str(self.mesh_path))
+        mesh = trimesh.Trimesh(vertices.astype(np.float32), faces, process=False)
+        data = mesh.export(file_type="ply", encoding="binary")
+        if not isinstance(data, bytes):
+            raise MeshError(
+                f"{self.mesh_path}: trimesh returned {type(data).__name__}, not PLY bytes"
+            )
+        atomic_write_bytes(self.mesh_path, data)
+
+    # ------------------------------------------------------------------ load / save
+    @classmethod
+    def load(cls, root: str | Path) -> Twin:
+        """Loads and validates a twin folder (the mesh is checked to exist, not read)."""
+        root = Path(root)
+        path = root / TWIN_FILE
+        if root.is_file() and root.name == TWIN_FILE:
+            root, path = root.parent, root
+        if not path.exists():
+            raise TwinError(f"{root}: no {TWIN_FILE} here; is this a twin folder?")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise TwinError(f"{path}: cannot read: {exc}") from exc
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise TwinError(
+                f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg}); "
+                f"the file may be truncated"
+            ) from exc
+        return cls.from_json(root, data, path)
+
+    @classmethod
+    def from_json(cls, root: Path, data: Any, path: Path | None = None) -> Twin:
+        f = _Fields(path or root / TWIN_FILE)
+        data = f.obj(data, "(top level)")
+        fmt = f.string(data, "format", "")
+        if fmt != FORMAT_NAME:
+            raise f.fail("format", f"must be '{FORMAT_NAME}', got {fmt!r}")
+        version = data.get("format_version")
+        if isinstance(version, bool) or not isinstance(version, int):
+            raise f.fail("format_version", f"must be an integer, got {version!r}")
+        if version > FORMAT_VERSION:
+            raise TwinVersionError(
+                f"{f.path}: written by format version {version}, but this vinetwin "
+                f"({vinetwin.__version__}) reads versions up to {FORMAT_VERSION}; upgrade vinetwin"
+            )
+        if version < 1:
+            raise f.fail("format_version", f"must be >= 1, got {version}")
+        units = f.string(data, "units", "", default="m")
+        if units != "m":
+            raise f.fail("units", f"must be 'm' (metres), got {units!r}")
+        mesh_file = f.string(data, "mesh", "")
+        if Path(mesh_file).is_absolute() or ".." in Path(mesh_file).parts:
+            raise f.fail("mesh", f"must be a file name inside the twin folder, got {mesh_file!r}")
+        if not (root / mesh_file).exists():
+            raise f.fail("mesh", f"file '{mesh_file}' does not exist in {root}")
+        skel = data.get("skeleton")
+        if skel is not None and (not isinstance(skel, str) or not (root / skel).exists()):
+            raise f.fail("skeleton", f"must name a file in the twin folder, got {skel!r}")
+
+        cam_data = f.obj(f.req(data, "camera", ""), "camera")
+        for key in ("width", "height"):
+            v = f.req(cam_data, key, "camera.")
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise f.fail(f"camera.{key}", f"must be a positive integer, got {v!r}")
+        for key in ("fx", "fy", "cx", "cy"):
+            f.number(cam_data, key, "camera.")
+        for key in ("min_depth", "max_depth", "depth_unit", "baseline", "subpixel"):
+            if key in cam_data:
+                f.number(cam_data, key, "camera.")
+        try:
+            camera = CameraModel.from_dict(cam_data)
+        except (CameraError, TypeError) as exc:
+            raise f.fail("camera", str(exc)) from exc
+
+        perc_data = f.obj(data.get("perception", {}), "perception")
+        for key, val in perc_data.items():
+            if key in {fl for fl in PerceptionConfig.__dataclass_fields__}:
+                f.number(perc_data, key, "perception.")
+                if val < 0:
+                    raise f.fail(f"perception.{key}", f"must be >= 0, got {val}")
+
+        cut_points: list[CutPoint] = []
+        ids: set[str] = set()
+        raw_cuts = f.req(data, "cut_points", "")
+        if not isinstance(raw_cuts, list):
+            raise f.fail("cut_points", "must be a list")
+        for i, c in enumerate(raw_cuts):
+            w = f"cut_points[{i}]."
+            c = f.obj(c, w[:-1])
+            cid = f.string(c, "id", w)
+            if not _ID_RE.match(cid) or cid in ids:
+                raise f.fail(
+                    f"{w}id", f"must be unique and match [A-Za-z0-9_-]{{1,64}}, got {cid!r}"
+                )
+            ids.add(cid)
+            known = {"id", "name", "point", "cane_axis", "source"}
+            cut_points.append(
+                CutPoint(
+                    id=cid,
+                    point=f.vec3(c, "point", w),
+                    cane_axis=f.vec3(c, "cane_axis", w, unit=True),
+                    name=f.string(c, "name", w, default=""),
+                    source=f.string(c, "source", w, default="manual"),
+                    extra={k: v for k, v in c.items() if k not in known},
+                )
+            )
+        poses: list[PruningPose] = []
+        raw_poses = f.req(data, "pruning_poses", "")
+        if not isinstance(raw_poses, list):
+            raise f.fail("pruning_poses", "must be a list")
+        pose_ids: set[str] = set()
+        for i, p in enumerate(raw_poses):
+            w = f"pruning_poses[{i}]."
+            p = f.obj(p, w[:-1])
+            pid = f.string(p, "id", w)
+            if not _ID_RE.match(pid) or pid in pose_ids:
+                raise f.fail(
+                    f"{w}id", f"must be unique and match [A-Za-z0-9_-]{{1,64}}, got {pid!r}"
+                )
+            pose_ids.add(pid)
+            cut = f.string(p, "cut_point", w)
+            if cut not in ids:
+                raise f.fail(f"{w}cut_point", f"names no cut point: {cut!r}")
+            variant = f.string(p, "icp_variant", w, default="point_to_plane")
+            if variant not in ICP_VARIANTS:
+                raise f.fail(
+                    f"{w}icp_variant",
+                    f"unknown ICP variant {variant!r}; choose one of: {', '.join(ICP_VARIANTS)}",
+                )
+            standoff = f.number(p, "standoff", w)
+            if standoff <= 0:
+                raise f.fail(f"{w}standoff", f"must be > 0 m, got {standoff}")
+            ap_data = f.obj(p.get("approach", {}), f"{w}approach")
+            known = {
+                "id",
+                "name",
+                "cut_point",
+                "T_vine_camera",
+                "standoff",
+                "icp_variant",
+                "approach",
+            }
+            poses.append(
+                PruningPose(
+                    id=pid,
+                    cut_point=cut,
+                    T_vine_camera=f.pose(p, "T_vine_camera", w),
+                    standoff=standoff,
+                    icp_variant=variant,
+                    name=f.string(p, "name", w, default=""),
+                    approach=Approach(
+                        standoff=standoff,
+                        azimuth=f.number(ap_data, "azimuth", f"{w}approach.", default=math.pi / 2),
+                        elevation=f.number(ap_data, "elevation", f"{w}approach.", default=0.0),
+                        roll=f.number(ap_data, "roll", f"{w}approach.", default=0.0),
+                    ),
+                    extra={k: v for k, v in p.items() if k not in known},
+                )
+            )
+        prov = data.get("provenance", {})
+        if not isinstance(prov, dict):
+            raise f.fail("provenance", "must be an object")
+        return cls(
+            root=root,
+            name=f.string(data, "name", "", default=root.name),
+            mesh_file=mesh_file,
+            skeleton_file=skel,
+            T_world_vine=f.pose(data, "T_world_vine", ""),
+            camera=camera,
+            T_flange_camera=f.pose(data, "T_flange_camera", ""),
+            cut_points=cut_points,
+            poses=poses,
+            perception=PerceptionConfig.from_dict(perc_data),
+            provenance=prov,
+            extra={k: v for k, v in data.items() if k not in _TOP_KEYS},
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            **self.extra,
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "units": "m",
+            "name": self.name,
+            "mesh": self.mesh_file,
+            "skeleton": self.skeleton_file,
+            "T_world_vine": np.asarray(self.T_world_vine).tolist(),
+            "camera": self.camera.to_dict(),
+            "T_flange_camera": np.asarray(self.T_flange_camera).tolist(),
+            "cut_points": [c.to_json() for c in self.cut_points],
+            "pruning_poses": [p.to_json() for p in self.poses],
+            "perception": self.perception.to_dict(),
+            "provenance": self.provenance,
+        }
+
+    def save(self) -> None:
+        """Writes twin.json atomically (temporary file, fsync, rename)."""
+        if not self.root.is_dir():
+            raise TwinError(f"{self.root}: twin folder does not exist")
+        text = json.dumps(self.to_json(), indent=1)
+        try:
+            atomic_write_text(self.json_path, text + "\n")
+        except OSError as exc:
+            raise TwinError(f"{self.json_path}: cannot save: {exc}") from exc
+
+    # ------------------------------------------------------------------ content
+    def load_mesh(self) -> trimesh.Trimesh:
+        """Reads and checks the mesh; raises MeshError when it is unreadable, empty or NaN."""
+        return load_mesh(self.mesh_path)
+
+    def load_skeleton(self) -> Skeleton | None:
+        if not self.skeleton_file:
+            return None
+        try:
+            return Skeleton.load(self.root / self.skeleton_file)
+        except (OSError, ValueError, KeyError) as exc:
+            raise TwinError(
+                f"{self.root / self.skeleton_file}: cannot read skeleton: {exc}"
+            ) from exc
+
+    def cut_point(self, cut_id: str) -> CutPoint:
+        for c in self.cut_points:
+            if c.id == cut_id:
+                return c
+        raise TwinError(f"no cut point '{cut_id}' in twin '{self.name}'")
+
+    def pose(self, pose_id: str) -> PruningPose:
+        for p in self.poses:
+            if p.id == pose_id:
+                return p
+        known = ", ".join(p.id for p in self.poses) or "none"
+        raise TwinError(f"no pruning pose '{pose_id}' in twin '{self.name}'; poses: {known}")
+
+    def _next_id(self, prefix: str, existing: list[str]) -> str:
+        n = 1 + max(
+            (int(m.group(1)) for e in existing if (m := re.fullmatch(rf"{prefix}(\d+)", e))),
+            default=0,
+        )
+        return f"{prefix}{n}"
+
+    def add_cut_point(
+        self, point: Any, cane_axis: Any, *, name: str = "", source: str = "manual"
+    ) -> CutPoint:
+        p = np.asarray(point, dtype=np.float64).reshape(3)
+        a = np.asarray(cane_axis, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(a)) and np.linalg.norm(a) > 1e-9):
+            raise InputError("a cut point needs a finite point and a finite non-zero cane axis")
+        cid = self._next_id("c", [c.id for c in self.cut_points])
+        cut = CutPoint(cid, p, a / np.linalg.norm(a), name=name or cid, source=source)
+        self.cut_points.append(cut)
+        return cut
+
+    def move_cut_point(self, cut_id: str, point: Any, cane_axis: Any | None = None) -> CutPoint:
+        """Moves a cut point; its poses follow (same approach angles and standoff)."""
+        cut = self.cut_point(cut_id)
+        p = np.asarray(point, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(p)):
+            raise InputError("cut point must be finite")
+        cut.point = p
+        if cane_axis is not None:
+            a = np.asarray(cane_axis, dtype=np.float64).reshape(3)
+            cut.cane_axis = a / np.linalg.norm(a)
+        for pose in self.poses:
+            if pose.cut_point == cut_id:
+                pose.T_vine_camera = pruning_pose(cut.point, cut.cane_axis, pose.approach)
+        return cut
+
+    def delete_cut_point(self, cut_id: str) -> list[PruningPose]:
+        """Deletes a cut point and returns its poses, which are deleted with it."""
+        cut = self.cut_point(cut_id)
+        self.cut_points.remove(cut)
+        gone = [p for p in self.poses if p.cut_point == cut_id]
+        self.poses = [p for p in self.poses if p.cut_point != cut_id]
+        return gone
+
+    def add_pose(
+        self,
+        cut_id: str,
+        approach: Approach | None = None,
+        *,
+        standoff: float = 0.15,
+        icp_variant: str = "point_to_plane",
+        name: str = "",
+    ) -> PruningPose:
+        """Derives and adds the pruning pose of a cut point (default approach unless given)."""
+        if icp_variant not in ICP_VARIANTS:
+            raise InputError(
+                f"unknown ICP variant '{icp_variant}'; choose one of: {', '.join(ICP_VARIANTS)}"
+            )
+        cut = self.cut_point(cut_id)
+        ap = approach or default_approach(cut.cane_axis, standoff)
+        T = pruning_pose(cut.point, cut.cane_axis, ap)
+        pid = self._next_id("p", [p.id for p in self.poses])
+        pose = PruningPose(pid, cut_id, T, ap.standoff, icp_variant, name or pid, ap)
+        self.poses.append(pose)
+        return pose
+
+    def set_pose(self, pose_id: str, T_vine_camera: Any) -> PruningPose:
+        """Replaces a pose's T_vine_camera (e.g. from a gizmo) and updates its description."""
+        pose = self.pose(pose_id)
+        T = check_pose(T_vine_camera, "T_vine_camera")
+        cut = self.cut_point(pose.cut_point)
+        pose.T_vine_camera = T
+        pose.approach = approach_of(T, cut.point, cut.cane_axis)
+        pose.standoff = pose.approach.standoff
+        return pose
+
+    def delete_pose(self, pose_id: str) -> PruningPose:
+        pose = self.pose(pose_id)
+        self.poses.remove(pose)
+        return pose
+
+
+# ----------------------------------------------------------------------------- meshes
+def _check_mesh_arrays(V: Any, F: Any, where: str) -> None:
+    V = np.asarray(V)
+    F = np.asarray(F)
+    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
+        raise MeshError(f"{where}: mesh vertices must have shape (V, 3) with V > 0, got {V.shape}")
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+        raise MeshError(f"{where}: mesh has no triangle faces (faces shape {F.shape})")
+    if not np.all(np.isfinite(V)):
+        raise MeshError(
+            f"{where}: mesh has {int((~np.isfinite(V)).any(1).sum())} non-finite vertices"
+        )
+    if F.min() < 0 or F.max() >= len(V):
+        raise MeshError(f"{where}: mesh faces index vertices out of range 0..{len(V) - 1}")
+
+
+def load_mesh(path: str | Path) -> trimesh.Trimesh:
+    """Reads a triangle mesh (PLY, OBJ, STL, GLB...) and checks it; raises MeshError naming the
+    problem (missing, unreadable, no faces, non-finite vertices)."""
+    import trimesh
+
+    path = Path(path)
+    if not path.exists():
+        raise MeshError(f"{path}: mesh file does not exist")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types on corrupt input
+        raise MeshError(f"{path}: cannot read mesh: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise MeshError(f"{path}: not a triangle mesh")
+    _check_mesh_arrays(mesh.vertices, mesh.faces, str(path))
+    return mesh
+
+
+def twin_from_skeleton(
+    root: str | Path,
+    skeleton: Skeleton,
+    *,
+    name: str | None = None,
+    edge: float = 0.002,
+    caps: str = "round",
+    camera: CameraModel | None = None,
+    source: dict[str, Any] | None = None,
+    cut_points: int = 0,
+    overwrite: bool = False,
+    progress: Callable[[str], None] | None = None,
+) -> Twin:
+    """Builds a tube mesh from a skeleton and writes a twin; the first `cut_points` candidates
+    (spread over the vine) become cut points with default pruning poses."""
+    from vinetwin.twin.skeleton import tube_mesh
+
+    if progress:
+        progress("meshing")
+    V, F = tube_mesh(skeleton, edge=edge, caps=caps)  # type: ignore[arg-type]
+    twin = Twin.create(
+        root, V, F, name=name, camera=camera, skeleton=skeleton, source=source, overwrite=overwrite
+    )
+    if cut_points > 0 and skeleton.candidates:
+        n = len(skeleton.candidates)
+        picks = np.unique(np.linspace(0, n - 1, min(cut_points, n)).round().astype(int))
+        for i in picks:
+            c = skeleton.candidates[i]
+            cut = twin.add_cut_point(c.point, c.cane_axis, name=c.label, source="candidate")
+            twin.add_pose(cut.id)
+        twin.save()
+    return twin

@@ -1,0 +1,304 @@
+"""Vine skeletons (branches as centre polylines with radii) and their tube meshes.
+
+A skeleton is what the importers read from digitised plants and what the sample generator grows;
+`tube_mesh` sweeps it into a closed triangle mesh whose triangles are kept close to equilateral
+(ray casting slows down by an order of magnitude on long thin triangles along canes).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from vinetwin.errors import InputError
+from vinetwin.frames import Array
+
+BranchKind = Literal["trunk", "cordon", "spur", "cane", "shoot", "branch"]
+CapStyle = Literal["round", "flat"]
+
+
+@dataclass
+class Branch:
+    """One woody axis: a centre polyline (N, 3) in metres with a radius (N,) at each point."""
+
+    points: Array
+    radii: Array
+    kind: BranchKind = "branch"
+    parent: int = -1
+    """Index of the branch this one grows from (-1 for a root)."""
+    label: str = ""
+    """Free text, e.g. the source's key for imported axes."""
+
+    def __post_init__(self) -> None:
+        self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
+        self.radii = np.asarray(self.radii, dtype=np.float64).reshape(-1)
+        if self.points.shape[0] != self.radii.shape[0]:
+            raise InputError(
+                f"branch '{self.label}': {self.points.shape[0]} points but {self.radii.shape[0]} radii"
+            )
+        if not (np.all(np.isfinite(self.points)) and np.all(np.isfinite(self.radii))):
+            raise InputError(f"branch '{self.label}': non-finite point or radius")
+        if np.any(self.radii <= 0):
+            raise InputError(f"branch '{self.label}': radii must be positive")
+
+    @property
+    def length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.points, axis=0), axis=1).sum())
+
+
+@dataclass
+class CutCandidate:
+    """A place where a pruner could cut: a point on a cane's axis and the cane direction there."""
+
+    point: Array
+    cane_axis: Array
+    branch: int
+    radius: float
+    label: str = ""
+
+
+@dataclass
+class Skeleton:
+    """Branches plus the cut-point candidates found on them."""
+
+    branches: list[Branch] = field(default_factory=list)
+    candidates: list[CutCandidate] = field(default_factory=list)
+
+    def bounds(self, inflate_by_radius: bool = True) -> Array:
+        """(2, 3) min/max corner of all centre points, optionally grown by each point's radius."""
+        pts = np.concatenate([b.points for b in self.branches])
+        if not inflate_by_radius:
+            return np.stack([pts.min(0), pts.max(0)])
+        r = np.concatenate([b.radii for b in self.branches])[:, None]
+        return np.stack([(pts - r).min(0), (pts + r).max(0)])
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "branches": [
+                {
+                    "kind": b.kind,
+                    "parent": b.parent,
+                    "label": b.label,
+                    "points": np.round(b.points, 6).tolist(),
+                    "radii": np.round(b.radii, 6).tolist(),
+                }
+                for b in self.branches
+            ],
+            "candidates": [
+                {
+                    "point": np.round(c.point, 6).tolist(),
+                    "cane_axis": np.round(c.cane_axis, 6).tolist(),
+                    "branch": c.branch,
+                    "radius": round(float(c.radius), 6),
+                    "label": c.label,
+                }
+                for c in self.candidates
+            ],
+        }
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Skeleton:
+        branches = [
+            Branch(
+                points=np.asarray(b["points"]),
+                radii=np.asarray(b["radii"]),
+                kind=b.get("kind", "branch"),
+                parent=int(b.get("parent", -1)),
+                label=str(b.get("label", "")),
+            )
+            for b in data.get("branches", [])
+        ]
+        cands = [
+            CutCandidate(
+                point=np.asarray(c["point"], dtype=np.float64),
+                cane_axis=np.asarray(c["cane_axis"], dtype=np.float64),
+                branch=int(c["branch"]),
+                radius=float(c["radius"]),
+                label=str(c.get("label", "")),
+            )
+            for c in data.get("candidates", [])
+        ]
+        return cls(branches, cands)
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_json(), separators=(",", ":")))
+
+    @classmethod
+    def load(cls, path: str | Path) -> Skeleton:
+        return cls.from_json(json.loads(Path(path).read_text()))
+
+
+# ---------------------------------------------------------------------------- tube meshes
+def _rotation_minimizing_frames(points: Array, tangents: Array) -> Array:
+    """Normals (N, 3) of a rotation-minimising frame along a curve (double reflection)."""
+    n = points.shape[0]
+    t0 = tangents[0]
+    helper = np.array([0.0, 0.0, 1.0]) if abs(t0[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    r = np.cross(t0, helper)
+    r /= np.linalg.norm(r)
+    normals = np.empty((n, 3))
+    normals[0] = r
+    for i in range(n - 1):
+        v1 = points[i + 1] - points[i]
+        c1 = v1 @ v1
+        if c1 < 1e-24:
+            normals[i + 1] = r
+            continue
+        rL = r - (2.0 / c1) * (v1 @ r) * v1
+        tL = tangents[i] - (2.0 / c1) * (v1 @ tangents[i]) * v1
+        v2 = tangents[i + 1] - tL
+        c2 = v2 @ v2
+        r = rL if c2 < 1e-24 else rL - (2.0 / c2) * (v2 @ rL) * v2
+        r = r - (r @ tangents[i + 1]) * tangents[i + 1]
+        r /= np.linalg.norm(r)
+        normals[i + 1] = r
+    return normals
+
+
+def _segments_for(radius: float, edge: float, max_sagitta: float) -> int:
+    m = math.ceil(2 * math.pi * radius / edge)
+    # enough sides that the polygon stays within max_sagitta of the true circle
+    if radius > max_sagitta:
+        m = max(m, math.ceil(math.pi / math.acos(1.0 - max_sagitta / radius)))
+    return int(min(max(m, 8), 96))
+
+
+def _tube(
+    points: Array,
+    radii: Array,
+    edge: float,
+    caps: tuple[CapStyle, CapStyle],
+    max_sagitta: float,
+) -> tuple[Array, np.ndarray]:
+    """Vertices and faces of one capped tube along a polyline."""
+    # drop repeated points
+    keep = np.ones(len(points), dtype=bool)
+    keep[1:] = np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-9
+    points, radii = points[keep], radii[keep]
+    if len(points) < 2:
+        raise InputError("a branch needs at least two distinct points")
+    m = _segments_for(float(radii.max()), edge, max_sagitta)
+    # resample so that ring spacing ~ local circumferential edge * sqrt(3)/2 (equilateral)
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    r_mid = 0.5 * (radii[1:] + radii[:-1])
+    h = np.maximum(2 * math.pi * r_mid / m * math.sqrt(3) / 2, 1e-4)
+    u = np.concatenate([[0.0], np.cumsum(seg / h)])
+    n_rings = max(2, math.ceil(u[-1]) + 1)
+    s_k = np.interp(np.linspace(0.0, u[-1], n_rings), u, s)
+    P = np.column_stack([np.interp(s_k, s, points[:, i]) for i in range(3)])
+    R = np.interp(s_k, s, radii)
+    T = np.gradient(P, axis=0)
+    T /= np.linalg.norm(T, axis=1, keepdims=True)
+    N = _rotation_minimizing_frames(P, T)
+    B = np.cross(T, N)
+    k = np.arange(n_rings)[:, None]
+    ang = 2 * math.pi * (np.arange(m)[None, :] + 0.5 * (k % 2)) / m
+    ring = P[:, None, :] + R[:, None, None] * (
+        np.cos(ang)[..., None] * N[:, None, :] + np.sin(ang)[..., None] * B[:, None, :]
+    )
+    verts = [ring.reshape(-1, 3)]
+    faces = []
+    j = np.arange(m)
+    j1 = (j + 1) % m
+    for kk in range(n_rings - 1):
+        a, b = kk * m, (kk + 1) * m
+        if kk % 2 == 0:  # next ring is shifted by +half a step
+            faces.append(np.column_stack([a + j, a + j1, b + j]))
+            faces.append(np.column_stack([b + j, a + j1, b + j1]))
+        else:  # this ring is shifted; next is not
+            faces.append(np.column_stack([a + j, a + j1, b + j1]))
+            faces.append(np.column_stack([a + j, b + j1, b + j]))
+    nv = n_rings * m
+    extra_v: list[Array] = []
+
+    def add_cap(end: int, style: CapStyle) -> None:
+        nonlocal nv
+        ring_start = 0 if end == 0 else (n_rings - 1) * m
+        centre, radius = P[0 if end == 0 else -1], R[0 if end == 0 else -1]
+        tangent = -T[0] if end == 0 else T[-1]
+        ring_idx = ring_start + j
+        base_ang = ang[0 if end == 0 else -1]
+        if style == "round":
+            n_lat = max(2, m // 4)
+            prev = ring_idx
+            for i in range(1, n_lat):
+                phi = (math.pi / 2) * i / n_lat
+                nrm = N[0 if end == 0 else -1]
+                bin_ = B[0 if end == 0 else -1]
+                pts = (
+                    centre
+                    + radius * math.sin(phi) * tangent
+                    + radius
+                    * math.cos(phi)
+                    * (np.cos(base_ang)[:, None] * nrm + np.sin(base_ang)[:, None] * bin_)
+                )
+                idx = nv + j
+                extra_v.append(pts)
+                nv += m
+                faces.append(_band(prev, idx, end))
+                prev = idx
+            apex = nv
+            extra_v.append((centre + radius * tangent)[None, :])
+            nv += 1
+            faces.append(_fan(prev, apex, end))
+        else:
+            apex = nv
+            extra_v.append(centre[None, :])
+            nv += 1
+            faces.append(_fan(ring_idx, apex, end))
+
+    add_cap(0, caps[0])
+    add_cap(1, caps[1])
+    V = np.concatenate(verts + extra_v)
+    F = np.concatenate(faces).astype(np.int64)
+    return V, F
+
+
+def _band(inner: np.ndarray, outer: np.ndarray, end: int) -> np.ndarray:
+    """Quad strip between two aligned rings, wound outward for the given end."""
+    m = len(inner)
+    j1 = np.roll(np.arange(m), -1)
+    a, b, c, d = inner, inner[j1], outer, outer[j1]
+    if end == 1:
+        return np.concatenate([np.column_stack([a, b, c]), np.column_stack([c, b, d])])
+    return np.concatenate([np.column_stack([a, c, b]), np.column_stack([c, d, b])])
+
+
+def _fan(ring: np.ndarray, apex: int, end: int) -> np.ndarray:
+    j1 = np.roll(ring, -1)
+    ap = np.full(len(ring), apex)
+    if end == 1:
+        return np.column_stack([ring, j1, ap])
+    return np.column_stack([ring, ap, j1])
+
+
+def tube_mesh(
+    skeleton: Skeleton | list[Branch],
+    edge: float = 0.002,
+    caps: CapStyle = "round",
+    max_sagitta: float = 2e-4,
+) -> tuple[Array, np.ndarray]:
+    """Sweeps every branch into a closed tube; returns vertices (V, 3) and faces (F, 3).
+
+    Args:
+        skeleton: the branches (metres).
+        edge: target triangle edge length, metres; rings hold about 2*pi*r/edge vertices.
+        caps: "round" (hemispheres, a swept-sphere body) or "flat" ends.
+        max_sagitta: the polygonal cross-section stays within this distance (m) of the circle.
+    """
+    branches = skeleton.branches if isinstance(skeleton, Skeleton) else skeleton
+    if not branches:
+        raise InputError("the skeleton has no branches")
+    vs, fs, off = [], [], 0
+    for b in branches:
+        V, F = _tube(b.points, b.radii, edge, (caps, caps), max_sagitta)
+        vs.append(V)
+        fs.append(F + off)
+        off += len(V)
+    return np.concatenate(vs), np.concatenate(fs)

@@ -1,0 +1,1 @@
+"""The Viser authoring app (issue: web). Not implemented yet."""

@@ -1,0 +1,250 @@
+"""The twin folder: round trips, validation of bad files, atomic saves, cut points and poses."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vinetwin import frames as fr
+from vinetwin.errors import MeshError, TwinError, TwinFieldError, TwinVersionError, VinetwinError
+from vinetwin.twin import Approach, Twin, pruning_pose
+from vinetwin.twin import poses as tp
+
+
+def box_mesh() -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    m = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+@pytest.fixture
+def twin(tmp_path: Path) -> Twin:
+    V, F = box_mesh()
+    t = Twin.create(tmp_path / "a.twin", V, F)
+    c = t.add_cut_point([0.0, 0.0, 0.05], [0, 0, 1])
+    t.add_pose(c.id)
+    t.save()
+    return t
+
+
+def test_round_trip_preserves_everything(twin: Twin) -> None:
+    loaded = Twin.load(twin.root)
+    assert loaded.to_json() == json.loads(json.dumps(twin.to_json()))
+    np.testing.assert_allclose(loaded.poses[0].T_vine_camera, twin.poses[0].T_vine_camera)
+    assert loaded.camera == twin.camera
+    mesh = loaded.load_mesh()
+    assert len(mesh.faces) == 12
+
+
+def test_unknown_fields_survive(twin: Twin) -> None:
+    data = json.loads(twin.json_path.read_text())
+    data["future_field"] = {"x": 1}
+    data["cut_points"][0]["color"] = "red"
+    data["pruning_poses"][0]["note"] = "keep me"
+    twin.json_path.write_text(json.dumps(data))
+    t = Twin.load(twin.root)
+    t.save()
+    again = json.loads(twin.json_path.read_text())
+    assert again["future_field"] == {"x": 1}
+    assert again["cut_points"][0]["color"] == "red"
+    assert again["pruning_poses"][0]["note"] == "keep me"
+
+
+def _corrupt(path: Path, edit) -> bytes:  # type: ignore[no-untyped-def]
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+    return path.read_bytes()
+
+
+def _nan_pose(d: dict) -> None:
+    d["pruning_poses"][0]["T_vine_camera"][0][3] = math.nan
+
+
+@pytest.mark.parametrize(
+    ("edit", "error", "needle"),
+    [
+        (lambda d: d.pop("camera"), TwinFieldError, "'camera': is missing"),
+        (lambda d: d["camera"].update(width="848"), TwinFieldError, "camera.width"),
+        (_nan_pose, TwinFieldError, "pruning_poses[0].T_vine_camera"),
+        (lambda d: d.update(format_version=99), TwinVersionError, "version 99"),
+        (lambda d: d.update(mesh="gone.ply"), TwinFieldError, "'gone.ply' does not exist"),
+        (lambda d: d.update(mesh="../escape.ply"), TwinFieldError, "inside the twin folder"),
+        (lambda d: d["cut_points"][0].pop("cane_axis"), TwinFieldError, "cut_points[0].cane_axis"),
+        (
+            lambda d: d["pruning_poses"][0].update(icp_variant="p2l"),
+            TwinFieldError,
+            "choose one of",
+        ),
+        (
+            lambda d: d["pruning_poses"][0].update(cut_point="c99"),
+            TwinFieldError,
+            "names no cut point",
+        ),
+        (lambda d: d["perception"].update(voxel_size=-1), TwinFieldError, "perception.voxel_size"),
+        (lambda d: d.update(format="other"), TwinFieldError, "'format'"),
+    ],
+)
+def test_bad_files_name_the_problem_and_stay_untouched(twin: Twin, edit, error, needle) -> None:  # type: ignore[no-untyped-def]
+    before = _corrupt(twin.json_path, edit)
+    with pytest.raises(error) as exc:
+        Twin.load(twin.root)
+    assert isinstance(exc.value, VinetwinError)
+    assert needle in str(exc.value)
+    assert twin.json_path.read_bytes() == before
+
+
+def test_truncated_json(twin: Twin) -> None:
+    text = twin.json_path.read_bytes()
+    twin.json_path.write_bytes(text[: len(text) // 2])
+    with pytest.raises(TwinError, match="truncated"):
+        Twin.load(twin.root)
+    assert twin.json_path.read_bytes() == text[: len(text) // 2]
+
+
+def test_missing_folder_and_mesh(tmp_path: Path, twin: Twin) -> None:
+    with pytest.raises(TwinError, match=r"no twin\.json"):
+        Twin.load(tmp_path / "nothing")
+    twin.mesh_path.unlink()
+    with pytest.raises(TwinFieldError, match="does not exist"):
+        Twin.load(twin.root)
+
+
+def test_corrupt_mesh_is_a_mesh_error(twin: Twin) -> None:
+    twin.mesh_path.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 99\nend_header\n\x00"
+    )
+    with pytest.raises(MeshError):
+        Twin.load(twin.root).load_mesh()
+
+
+def test_create_refuses_bad_meshes(tmp_path: Path) -> None:
+    V, F = box_mesh()
+    V = V.copy()
+    V[0, 0] = np.nan
+    with pytest.raises(MeshError, match="non-finite"):
+        Twin.create(tmp_path / "nan.twin", V, F)
+    with pytest.raises(MeshError, match="no triangle faces"):
+        Twin.create(tmp_path / "nofaces.twin", V[1:], np.zeros((0, 3), int))
+    assert not (tmp_path / "nan.twin" / "twin.json").exists()
+
+
+def test_create_refuses_to_overwrite(twin: Twin) -> None:
+    V, F = box_mesh()
+    with pytest.raises(TwinError, match="already holds a twin"):
+        Twin.create(twin.root, V, F)
+
+
+def test_crash_during_save_keeps_previous_file(twin: Twin, monkeypatch: pytest.MonkeyPatch) -> None:
+    before = twin.json_path.read_bytes()
+    twin.add_cut_point([0.01, 0, 0.05], [0, 0, 1])
+
+    def boom(src: str, dst: str) -> None:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(TwinError, match="disk full"):
+        twin.save()
+    assert twin.json_path.read_bytes() == before
+    assert [p.name for p in twin.root.iterdir() if p.name.endswith(".tmp")] == []
+
+
+def test_cut_point_editing_keeps_poses_consistent(twin: Twin) -> None:
+    cut = twin.cut_points[0]
+    pose = twin.poses[0]
+    twin.move_cut_point(cut.id, [0.02, 0.0, 0.04])
+    assert tp.axis_miss_distance(pose.T_vine_camera, cut.point) < 1e-12
+    c2 = twin.add_cut_point([0.0, 0.01, 0.05], [1, 0, 0])
+    assert c2.id == "c2"
+    twin.add_pose(c2.id, icp_variant="symmetric")
+    gone = twin.delete_cut_point(cut.id)
+    assert [p.id for p in gone] == ["p1"]
+    assert [p.cut_point for p in twin.poses] == ["c2"]
+    twin.save()
+    assert [c.id for c in Twin.load(twin.root).cut_points] == ["c2"]
+
+
+def test_set_pose_updates_description(twin: Twin) -> None:
+    pose = twin.poses[0]
+    cut = twin.cut_point(pose.cut_point)
+    T = pruning_pose(cut.point, cut.cane_axis, Approach(0.2, 1.0, 0.3, 0.4))
+    twin.set_pose(pose.id, T)
+    assert pose.standoff == pytest.approx(0.2)
+    assert (pose.approach.azimuth, pose.approach.elevation, pose.approach.roll) == pytest.approx(
+        (1.0, 0.3, 0.4)
+    )
+
+
+@pytest.mark.parametrize("axis", [[0, 0, 1], [1, 0, 0], [0.3, 0.2, 0.9], [0, 1, 0]])
+def test_default_pruning_pose_geometry(axis: list[float]) -> None:
+    p = np.array([0.1, -0.2, 0.8])
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    T = pruning_pose(p, a)
+    fr.check_pose(T)
+    z = T[:3, 2]
+    assert np.linalg.norm(p - T[:3, 3]) == pytest.approx(0.15)  # standoff
+    assert tp.axis_miss_distance(T, p) < 1e-12  # optical axis through the cut
+    assert abs(z @ a) < 1e-9  # approach perpendicular to the cane
+    # the cane runs across the image: its direction in the camera frame is +x
+    a_cam = T[:3, :3].T @ a
+    np.testing.assert_allclose(a_cam, [1, 0, 0], atol=1e-9)
+    if abs(a[1]) < 0.99:
+        assert z[1] > 0  # from the robot's side (-Y) towards the row
+
+
+def test_approach_round_trip_and_snap(rng: np.random.Generator) -> None:
+    p = np.array([0.0, 0.0, 0.7])
+    a = np.array([0.1, 0.0, 1.0])
+    for _ in range(20):
+        ap = Approach(
+            rng.uniform(0.08, 0.3), rng.uniform(-3, 3), rng.uniform(-1.2, 1.2), rng.uniform(-3, 3)
+        )
+        T = pruning_pose(p, a, ap)
+        back = tp.approach_of(T, p, a)
+        assert (back.standoff, back.azimuth, back.elevation, back.roll) == pytest.approx(
+            (ap.standoff, ap.azimuth, ap.elevation, ap.roll), abs=1e-9
+        )
+        moved = T.copy()
+        moved[:3, 3] += rng.normal(size=3) * 0.03
+        snapped = tp.snap_to_cut_point(moved, p, a)
+        assert tp.axis_miss_distance(snapped, p) < 1e-12
+        np.testing.assert_allclose(snapped[:3, 3], moved[:3, 3], atol=1e-12)
+
+
+def test_estimate_cane_axis_from_mesh() -> None:
+    from vinetwin.twin.skeleton import Branch, tube_mesh
+
+    d = np.array([0.2, 0.1, 1.0]) / np.linalg.norm([0.2, 0.1, 1.0])
+    V, _ = tube_mesh([Branch(np.outer(np.linspace(0, 0.3, 10), d), np.full(10, 0.004))])
+    axis = tp.estimate_cane_axis(V, 0.15 * d)
+    assert abs(axis @ d) > 0.999
+
+
+def test_bundled_samples_load(sample_twin_dir: Path) -> None:
+    root = sample_twin_dir.parent
+    samples = sorted(root.glob("*.twin"))
+    assert len(samples) >= 2
+    total = 0
+    for s in samples:
+        t = Twin.load(s)
+        mesh = t.load_mesh()
+        assert len(mesh.faces) > 50_000
+        assert len(t.poses) >= 3 and t.load_skeleton() is not None
+        total += sum(f.stat().st_size for f in s.rglob("*") if f.is_file())
+    assert total < 6e6  # "a few MB at most in all"
+
+
+def test_copy_of_twin_is_independent(twin: Twin, tmp_path: Path) -> None:
+    dst = tmp_path / "copy.twin"
+    shutil.copytree(twin.root, dst)
+    t = Twin.load(dst)
+    t.add_cut_point([0, 0, 0], [0, 0, 1])
+    t.save()
+    assert len(Twin.load(twin.root).cut_points) == 1

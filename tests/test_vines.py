@@ -1,0 +1,150 @@
+"""Vine skeletons: the procedural generator and the importers of real digitised plants."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from tests.conftest import shared
+from vinetwin.errors import ImportFormatError, InputError
+from vinetwin.twin.generator import VineParams, generate_vine
+from vinetwin.twin.importers import detect_format, load_skeleton, read_cylinders, read_hydroshoot
+from vinetwin.twin.skeleton import Branch, Skeleton, tube_mesh
+
+HYDROSHOOT = ["gdc_can1_grapevine", "vsp_ww_grapevine", "virtual_vsp"]
+TREES = ["Apple_1_TallSpindle.txt", "Apple_YTrellisL.txt", "Nectarine_30_6_14_1.txt"]
+
+
+@pytest.mark.parametrize("name", HYDROSHOOT)
+def test_hydroshoot_imports_with_matching_extent(name: str) -> None:
+    path = shared("vines", "hydroshoot", name, "digit.input")
+    assert detect_format(path) == "hydroshoot"
+    sk = load_skeleton(path)
+    # source extent: every node (cm -> m), grown by its radius (round caps make a swept sphere)
+    rows = [ln.split(";") for ln in path.read_text().splitlines()[1:] if ln.strip()]
+    xyz = np.array([[float(r[6]), float(r[7]), float(r[8])] for r in rows]) / 100
+    centres = np.concatenate([b.points for b in sk.branches])
+    # every source node is a skeleton point, to the micrometre
+    d = np.linalg.norm(xyz[:, None, :] - centres[None, :, :], axis=2).min(1)
+    assert d.max() < 1e-6
+    V, _F = tube_mesh(sk, edge=0.004, caps="round")
+    src = sk.bounds(inflate_by_radius=True)
+    np.testing.assert_allclose(np.stack([V.min(0), V.max(0)]), src, atol=1e-3)
+    assert len(sk.candidates) >= 5
+    if name == "gdc_can1_grapevine":  # diameters come from the file: trunk about 5 cm
+        assert 0.02 < sk.branches[0].radii.mean() < 0.03
+
+
+@pytest.mark.parametrize("name", TREES)
+def test_cylinder_lists_import_with_matching_extent(name: str) -> None:
+    path = shared("trees", "tree-models-library", name)
+    assert detect_format(path) == "cylinders"
+    sk = read_cylinders(path)
+    rows = np.array(
+        [ln.split() for ln in path.read_text().splitlines() if len(ln.split()) == 7], float
+    )
+    s, a, r = rows[:, :3], rows[:, 3:6], rows[:, 6]
+    u = a / np.linalg.norm(a, axis=1, keepdims=True)
+    ext = r[:, None] * np.sqrt(np.clip(1 - u**2, 0, 1))  # extent of a disc perpendicular to u
+    lo = np.minimum(s - ext, s + a - ext).min(0)
+    hi = np.maximum(s + ext, s + a + ext).max(0)
+    V, _F = tube_mesh(sk, edge=0.006, caps="flat")
+    np.testing.assert_allclose(np.stack([V.min(0), V.max(0)]), np.stack([lo, hi]), atol=1e-3)
+
+
+def test_generator_is_deterministic_per_seed() -> None:
+    a, b, c = generate_vine(5), generate_vine(5), generate_vine(6)
+    assert len(a.branches) == len(b.branches)
+    for x, y in zip(a.branches, b.branches, strict=True):
+        np.testing.assert_array_equal(x.points, y.points)
+        np.testing.assert_array_equal(x.radii, y.radii)
+    assert not np.array_equal(a.branches[0].points, c.branches[0].points)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_generated_vines_look_like_dormant_vines(seed: int) -> None:
+    sk = generate_vine(seed)
+    kinds = [b.kind for b in sk.branches]
+    trunk = sk.branches[0]
+    assert kinds[0] == "trunk" and 1 <= kinds.count("cordon") <= 2
+    assert 0.020 <= 2 * np.median(trunk.radii) <= 0.045
+    canes = [b for b in sk.branches if b.kind == "cane"]
+    assert len(canes) >= 4
+    for c in canes:
+        assert 0.006 * 0.9 <= 2 * c.radii[0] <= 0.012 * 1.45  # base diameter (+ node swelling)
+        assert c.points[-1, 2] > c.points[0, 2]  # canes rise
+    assert len(sk.candidates) >= 3
+    for cand in sk.candidates:  # candidates lie on their cane's axis
+        b = sk.branches[cand.branch]
+        assert np.linalg.norm(b.points - cand.point, axis=1).min() < 1e-9
+        assert abs(np.linalg.norm(cand.cane_axis) - 1) < 1e-9
+    assert VineParams(cordons=1) != VineParams()
+    assert sum(b.kind == "cordon" for b in generate_vine(seed, VineParams(cordons=1)).branches) == 1
+
+
+def test_generated_mesh_is_closed_and_well_shaped() -> None:
+    V, F = tube_mesh(generate_vine(3), edge=0.002)
+    assert 200_000 < len(F) < 600_000  # real-sized
+    mesh = trimesh.Trimesh(V, F, process=False)
+    parts = mesh.split(only_watertight=False)
+    assert all(p.is_watertight and p.volume > 0 for p in parts)
+    tri = V[F]
+    edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
+    aspect = edges.max(1) / edges.min(1)
+    assert np.median(aspect) < 1.5  # near equilateral: ray casting stays fast
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("Souche;tronc;element\n1;0;1\n", "header"),
+        (
+            "Plant_Nb;Tronc;Elmnt;Sar;Rameau;Row;X;Y;Z\n8;0;1;0;0;0;a;0;5\n8;0;2;0;0;0;0;0;10\n",
+            "bad number",
+        ),
+        (
+            "Plant_Nb;Tronc;Elmnt;Sar;Rameau;Row;X;Y;Z\n8;0;1;0;0;0\n8;0;2;0;0;0;0;0;10\n",
+            "expected 9 fields",
+        ),
+    ],
+)
+def test_bad_hydroshoot_files(tmp_path: Path, text: str, needle: str) -> None:
+    p = tmp_path / "digit.input"
+    p.write_text(text)
+    with pytest.raises(ImportFormatError, match=needle):
+        read_hydroshoot(p)
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("3\n0 0 0 0 0 1 0.1\n", "should follow"),
+        ("1\n0 0 0 0 0 1 -0.1\n", "non-positive radius"),
+        ("x\n", "cylinder count"),
+    ],
+)
+def test_bad_cylinder_files(tmp_path: Path, text: str, needle: str) -> None:
+    p = tmp_path / "tree.txt"
+    p.write_text(text)
+    with pytest.raises(ImportFormatError, match=needle):
+        read_cylinders(p)
+
+
+def test_unknown_format(tmp_path: Path) -> None:
+    p = tmp_path / "x.txt"
+    p.write_text("hello world\n")
+    with pytest.raises(ImportFormatError, match="unknown skeleton format"):
+        load_skeleton(p)
+
+
+def test_branch_validation_and_skeleton_json_round_trip(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="radii must be positive"):
+        Branch(np.zeros((2, 3)), np.array([0.01, 0.0]))
+    sk = generate_vine(1)
+    sk.save(tmp_path / "s.json")
+    back = Skeleton.load(tmp_path / "s.json")
+    assert len(back.branches) == len(sk.branches) and len(back.candidates) == len(sk.candidates)
+    np.testing.assert_allclose(back.branches[3].points, sk.branches[3].points, atol=1e-6)
