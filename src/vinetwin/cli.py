@@ -105,6 +105,127 @@ class Info:
         _summary(twin, mesh=self.check_mesh)
 
 
+BackendChoice = Literal["open3d", "pyrender", "mujoco"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Export:
+    """Render each pruning pose's reference cloud into TWIN/references (PLY, PCD, JSON)."""
+
+    twin: Annotated[Path, tyro.conf.Positional]
+    """Twin folder."""
+    poses: tuple[str, ...] = ()
+    """Pose ids to export (default: all)."""
+    backend: BackendChoice = "open3d"
+    """Depth renderer: open3d (ray casting, no OpenGL), pyrender or mujoco (EGL)."""
+    workers: int = 2
+    """Worker processes (1 renders in this process)."""
+    seed: int = 0
+    """Base seed of the D405 noise; each pose derives its own."""
+    force: bool = False
+    """Re-render references whose inputs did not change."""
+    clean: bool = False
+    """Render without the D405 sensor model (exact depth)."""
+
+    def run(self) -> None:
+        from vinetwin.render.export import check_export_ok, export_references
+        from vinetwin.render.sensor import SensorConfig
+        from vinetwin.twin.model import Twin
+
+        twin = Twin.load(self.twin)
+        report = _with_progress(
+            "exporting references",
+            lambda progress: export_references(
+                twin,
+                self.poses or None,
+                backend=self.backend,
+                workers=self.workers,
+                seed=self.seed,
+                sensor=SensorConfig(enabled=not self.clean),
+                force=self.force,
+                progress=progress,
+            ),
+        )
+        _print_export(report, twin.references_dir)
+        check_export_ok(report)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Preview:
+    """Render one pose's D405 depth image and reference cloud into a PNG to look at."""
+
+    twin: Annotated[Path, tyro.conf.Positional]
+    """Twin folder."""
+    pose: str
+    """Pose id."""
+    out: Path = Path("preview.png")
+    """PNG to write."""
+    backend: BackendChoice = "open3d"
+    """Depth renderer."""
+    seed: int = 0
+    """Base seed of the D405 noise."""
+
+    def run(self) -> None:
+        from vinetwin.render.backends import get_backend
+        from vinetwin.render.preview import save_preview
+        from vinetwin.render.reference import pose_seed, render_reference
+        from vinetwin.render.sensor import SensorConfig
+        from vinetwin.twin.model import Twin
+
+        twin = Twin.load(self.twin)
+        pose = twin.pose(self.pose)
+        mesh = twin.load_mesh()
+        backend = get_backend(self.backend, mesh.vertices, mesh.faces, twin.camera)
+        ref = render_reference(
+            backend,
+            pose.T_vine_camera,
+            twin.perception,
+            SensorConfig(),
+            pose_seed(self.seed, pose.id),
+        )
+        backend.close()
+        save_preview(ref, self.out, f"{twin.name} / {pose.id} ({self.backend})")
+        log.info("wrote %s (%d points)", self.out, len(ref.cloud))
+
+
+def _with_progress(label: str, work):  # type: ignore[no-untyped-def]
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()
+    ) as bar:
+        task = bar.add_task(label, total=None)
+
+        def progress(result: object, done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        return work(progress)
+
+
+def _print_export(report: object, where: Path) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from vinetwin.render.export import ExportReport
+
+    assert isinstance(report, ExportReport)
+    table = Table("pose", "status", "points", "seconds", "note")
+    for r in report.results:
+        table.add_row(
+            r.pose_id,
+            r.status,
+            str(r.points) if r.status == "rendered" else "",
+            f"{r.seconds:.2f}",
+            r.error or r.warning,
+        )
+    con = Console()
+    con.print(table)
+    con.print(
+        f"{report.count('rendered')} rendered, {report.count('skipped')} unchanged, "
+        f"{report.count('failed')} failed in {report.seconds:.1f} s -> {where}"
+    )
+
+
 def _bundled_sample() -> Path:
     """The bundled sample twin: `samples/vine_bilateral.twin` of the source checkout."""
     here = Path(__file__).resolve()
@@ -120,7 +241,8 @@ def _bundled_sample() -> Path:
 
 @dataclass(frozen=True, kw_only=True)
 class Demo:
-    """The main job, headless: copy the bundled sample twin to OUT and run the pipeline on it."""
+    """The main job, headless: copy the bundled sample twin to OUT, export its reference clouds
+    and write a preview of the first pose."""
 
     out: Path = Path("out/demo")
     """Folder for the demo's outputs (the bundled sample itself is never modified)."""
@@ -138,6 +260,14 @@ class Demo:
         shutil.copytree(src, dst)
         twin = Twin.load(dst)
         _summary(twin)
+        Export(twin=dst).run()
+        first = twin.poses[0].id
+        Preview(twin=dst, pose=first, out=self.out / f"preview_{first}.png").run()
+        log.info(
+            "demo done: references in %s, preview in %s",
+            twin.references_dir,
+            self.out / f"preview_{first}.png",
+        )
 
 
 def _summary(twin: object, mesh: bool = True) -> None:
@@ -176,6 +306,8 @@ COMMANDS: dict[str, type] = {
     "sample": Sample,
     "import-vine": ImportVine,
     "info": Info,
+    "export": Export,
+    "preview": Preview,
     "demo": Demo,
 }
 

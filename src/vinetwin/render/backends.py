@@ -1,0 +1,273 @@
+"""Depth rendering backends behind one interface.
+
+Every backend renders metric z-depth (float32, metres, OpenCV camera, 0 where nothing is hit) of
+a triangle mesh (vine frame) seen by a `CameraModel` at `T_vine_camera`:
+
+- `open3d`: Open3D ray casting (`RaycastingScene`), the default: no OpenGL needed;
+- `pyrender`: OpenGL rasterisation, headless through EGL (or OSMesa with PYOPENGL_PLATFORM=osmesa);
+- `mujoco`: MuJoCo's offscreen renderer (EGL), the vine as a mesh asset.
+
+A backend that cannot start raises `BackendUnavailable` with the reason; `get_backend` never
+falls back to another backend silently.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Literal, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from vinetwin import _lazy
+from vinetwin import conventions as cv
+from vinetwin.camera import CameraModel
+from vinetwin.errors import BackendUnavailable, InputError, MeshError
+from vinetwin.frames import check_pose
+
+BackendName = Literal["open3d", "pyrender", "mujoco"]
+BACKENDS: tuple[BackendName, ...] = ("open3d", "pyrender", "mujoco")
+DepthImage = npt.NDArray[np.float32]
+
+
+class DepthBackend(Protocol):
+    """What every backend offers."""
+
+    name: str
+    camera: CameraModel
+
+    def render(self, T_vine_camera: Any) -> DepthImage:
+        """Z-depth image (H, W) float32 metres, 0 where invalid."""
+        ...
+
+    def close(self) -> None: ...
+
+
+def check_mesh(vertices: Any, faces: Any) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
+    """Validates mesh arrays for rendering; raises MeshError naming the problem."""
+    V = np.asarray(vertices)
+    F = np.asarray(faces)
+    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
+        raise MeshError(f"mesh vertices must have shape (V, 3) with V > 0, got {V.shape}")
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+        raise MeshError(f"mesh has no triangle faces (faces shape {F.shape})")
+    if not np.all(np.isfinite(V)):
+        raise MeshError(
+            f"mesh has {int((~np.isfinite(V)).any(1).sum())} non-finite (NaN/inf) vertices"
+        )
+    if F.min() < 0 or F.max() >= len(V):
+        raise MeshError(f"mesh faces index vertices out of range 0..{len(V) - 1}")
+    return V.astype(np.float32), F.astype(np.uint32)
+
+
+class Open3DBackend:
+    """Ray casting with Open3D's `RaycastingScene` (CPU, no OpenGL)."""
+
+    name = "open3d"
+
+    def __init__(self, vertices: Any, faces: Any, camera: CameraModel, threads: int = 0) -> None:
+        try:
+            o3d = _lazy.open3d()
+        except (ImportError, OSError) as exc:  # OSError: libusb missing on a bare Debian
+            raise BackendUnavailable("open3d", f"cannot import open3d: {exc}") from exc
+        V, F = check_mesh(vertices, faces)
+        self._o3d = o3d
+        self.camera = camera
+        self.threads = threads
+        self.scene = o3d.t.geometry.RaycastingScene(nthreads=threads)
+        self.scene.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(F))
+        self._K = o3d.core.Tensor(cv.open3d_raycast_intrinsics(camera.K))
+        # ray directions in the camera frame (z = 1), rotated per pose
+        self._dirs = camera.ray_directions().reshape(-1, 3).astype(np.float32)
+
+    def render(self, T_vine_camera: Any) -> DepthImage:
+        T = check_pose(T_vine_camera, "T_vine_camera")
+        cam = self.camera
+        rays = np.empty((cam.height * cam.width, 6), np.float32)
+        rays[:, :3] = T[:3, 3]
+        rays[:, 3:] = self._dirs @ T[:3, :3].T.astype(np.float32)
+        out = self.scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=self.threads)
+        t = out["t_hit"].numpy().reshape(cam.height, cam.width)
+        return np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+
+    def close(self) -> None:
+        pass
+
+
+def _require_gl(backend: str) -> None:
+    plat = os.environ.get("PYOPENGL_PLATFORM")
+    if plat is None and not os.environ.get("DISPLAY"):
+        os.environ["PYOPENGL_PLATFORM"] = "egl"
+    elif plat not in (None, "egl", "osmesa") and not os.environ.get("DISPLAY"):
+        raise BackendUnavailable(
+            backend, f"PYOPENGL_PLATFORM={plat} needs a display; use egl or osmesa"
+        )
+
+
+class PyrenderBackend:
+    """OpenGL rasterisation with pyrender (the maintained fork), headless via EGL or OSMesa."""
+
+    name = "pyrender"
+
+    def __init__(self, vertices: Any, faces: Any, camera: CameraModel) -> None:
+        _require_gl("pyrender")
+        try:
+            import pyrender
+            import trimesh
+        except Exception as exc:  # ImportError, or OpenGL errors raised at import
+            raise BackendUnavailable("pyrender", f"cannot import pyrender: {exc}") from exc
+        V, F = check_mesh(vertices, faces)
+        self.camera = camera
+        self._pyrender = pyrender
+        self.scene = pyrender.Scene(bg_color=[0, 0, 0, 0])
+        self._mesh_node = self.scene.add(
+            pyrender.Mesh.from_trimesh(trimesh.Trimesh(V, F, process=False), smooth=False)
+        )
+        fx, fy, cx, cy = cv.pyrender_intrinsics(camera.fx, camera.fy, camera.cx, camera.cy)
+        znear = max(1e-3, 0.5 * camera.min_depth) if camera.min_depth > 0 else 0.01
+        self._cam = pyrender.IntrinsicsCamera(
+            fx, fy, cx, cy, znear=znear, zfar=max(10.0, 2 * camera.max_depth)
+        )
+        self._cam_node = self.scene.add(self._cam, pose=np.eye(4))
+        try:
+            self.renderer = pyrender.OffscreenRenderer(camera.width, camera.height)
+        except Exception as exc:
+            raise BackendUnavailable(
+                "pyrender",
+                f"cannot create an offscreen OpenGL context ({os.environ.get('PYOPENGL_PLATFORM')}): {exc}",
+            ) from exc
+        _keep_egl_display_alive(self.renderer)
+
+    def render(self, T_vine_camera: Any) -> DepthImage:
+        T = check_pose(T_vine_camera, "T_vine_camera")
+        self.scene.set_pose(self._cam_node, cv.T_world_camera_opengl(T))
+        # pyrender rasterises into a 4x multisample buffer and resolves depth by picking one
+        # sample, whose position is off the pixel centre: depth then disagrees with ray casting
+        # by millimetres along silhouettes. Its SEG mode disables multisampling, so depth is
+        # sampled at pixel centres like the other backends.
+        flags = self._pyrender.RenderFlags
+        out = self.renderer.render(
+            self.scene,
+            flags=flags.DEPTH_ONLY | flags.SEG,
+            seg_node_map={self._mesh_node: (255, 255, 255)},
+        )
+        depth = out[1] if isinstance(out, tuple) else out
+        return np.asarray(depth, dtype=np.float32)
+
+    def close(self) -> None:
+        self.renderer.delete()
+
+
+def _keep_egl_display_alive(renderer: Any) -> None:
+    """pyrender's EGL teardown calls eglTerminate on the display, which EGL shares across the
+    whole process: a MuJoCo renderer in the same process then fails with EGL_BAD_DISPLAY. Make
+    this renderer destroy only its own context."""
+    platform = getattr(renderer, "_platform", None)
+    if platform is None or type(platform).__name__ != "EGLPlatform":
+        return
+
+    def delete_context() -> None:
+        from OpenGL.EGL import eglDestroyContext
+
+        if platform._egl_display is not None and platform._egl_context is not None:
+            eglDestroyContext(platform._egl_display, platform._egl_context)
+        platform._egl_context = None
+        platform._egl_display = None
+
+    platform.delete_context = delete_context
+
+
+class MujocoBackend:
+    """MuJoCo's offscreen renderer with the vine as a mesh asset and a camera at the pose."""
+
+    name = "mujoco"
+
+    def __init__(self, vertices: Any, faces: Any, camera: CameraModel) -> None:
+        if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+            os.environ["MUJOCO_GL"] = "egl"
+        try:
+            mujoco = _lazy.mujoco()
+        except Exception as exc:
+            raise BackendUnavailable("mujoco", f"cannot import mujoco: {exc}") from exc
+        V, F = check_mesh(vertices, faces)
+        self.camera = camera
+        self._mujoco = mujoco
+        self.model = mujoco.MjModel.from_xml_string(*vine_scene_xml(V, F, camera))
+        self.data = mujoco.MjData(self.model)
+        self._cam_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, "d405")
+        try:
+            self.renderer = mujoco.Renderer(self.model, camera.height, camera.width)
+        except Exception as exc:
+            raise BackendUnavailable(
+                "mujoco",
+                f"cannot create an offscreen context (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): {exc}",
+            ) from exc
+        self.renderer.enable_depth_rendering()
+        self._far = float(self.model.vis.map.zfar * self.model.stat.extent)
+
+    def render(self, T_vine_camera: Any) -> DepthImage:
+        T = check_pose(T_vine_camera, "T_vine_camera")
+        pos, quat = cv.mujoco_camera_pos_quat(T)
+        self.model.cam_pos[self._cam_id] = pos
+        self.model.cam_quat[self._cam_id] = quat
+        self._mujoco.mj_kinematics(self.model, self.data)
+        self._mujoco.mj_camlight(self.model, self.data)
+        self.renderer.update_scene(self.data, camera=self._cam_id)
+        depth = self.renderer.render()
+        depth = np.where(depth >= 0.999 * self._far, 0.0, depth)
+        return depth.astype(np.float32)
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def vine_scene_xml(
+    vertices: npt.NDArray[np.float32], faces: npt.NDArray[np.uint32], camera: CameraModel
+) -> tuple[str, dict[str, bytes]]:
+    """MJCF (and its assets) of a static vine mesh and a D405 camera named `d405`.
+
+    Intrinsics go in through `resolution`, `focalpixel`, `principalpixel` and `sensorsize`, so an
+    off-centre principal point and fx != fy are honoured.
+    """
+    import trimesh
+
+    stl = trimesh.Trimesh(vertices, faces, process=False).export(file_type="stl")
+    assert isinstance(stl, bytes)
+    pixel = 1e-6  # sensor pixel pitch used to express intrinsics (any positive value works)
+    c = camera
+    # MuJoCo's principal point is the image centre's offset from it, in pixels, both axes
+    # (pinned by tests/test_render.py::test_known_point_lands_on_expected_pixel).
+    px = (c.width - 1) / 2 - c.cx
+    py = (c.height - 1) / 2 - c.cy
+    xml = f"""
+<mujoco model="vinetwin_vine">
+  <compiler boundmass="1e-6" boundinertia="1e-12"/>
+  <statistic extent="1" center="0 0 0"/>
+  <visual>
+    <global offwidth="{c.width}" offheight="{c.height}"/>
+    <map znear="0.005" zfar="10"/>
+    <quality shadowsize="0" offsamples="0"/>
+  </visual>
+  <asset><mesh name="vine" file="vine.stl"/></asset>
+  <worldbody>
+    <geom name="vine" type="mesh" mesh="vine" contype="0" conaffinity="0"/>
+    <camera name="d405" mode="fixed" pos="0 0 0" resolution="{c.width} {c.height}"
+            focalpixel="{c.fx} {c.fy}" principalpixel="{px} {py}"
+            sensorsize="{c.width * pixel} {c.height * pixel}"/>
+  </worldbody>
+</mujoco>"""
+    return xml, {"vine.stl": stl}
+
+
+def get_backend(
+    name: str, vertices: Any, faces: Any, camera: CameraModel, **kwargs: Any
+) -> DepthBackend:
+    """Creates the named backend; raises BackendUnavailable (with the reason) if it cannot start,
+    or InputError for an unknown name."""
+    if name == "open3d":
+        return Open3DBackend(vertices, faces, camera, **kwargs)
+    if name == "pyrender":
+        return PyrenderBackend(vertices, faces, camera)
+    if name == "mujoco":
+        return MujocoBackend(vertices, faces, camera)
+    raise InputError(f"unknown render backend '{name}'; choose one of: {', '.join(BACKENDS)}")

@@ -1,0 +1,46 @@
+"""A picture of what the camera sees at a pruning pose: the D405 depth image and the reference
+cloud (as a top and a side view), for people to look at."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from vinetwin.render.reference import Reference
+
+
+def save_preview(ref: Reference, path: str | Path, title: str = "") -> None:
+    """Writes a PNG with the depth image (turbo colours, metres) and two views of the cloud."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = np.where(ref.depth > 0, ref.depth, np.nan)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), gridspec_kw={"width_ratios": [1.8, 1, 1]})
+    im = axes[0].imshow(d, cmap="turbo")
+    axes[0].set_title("D405 depth (m)")
+    axes[0].set_xlabel("u (px)")
+    axes[0].set_ylabel("v (px)")
+    fig.colorbar(im, ax=axes[0], fraction=0.03)
+    p = ref.cloud.points
+    sc = None
+    for ax, (i, j, name) in zip(
+        axes[1:],
+        [(0, 1, "front (x right, y down)"), (0, 2, "top (x right, z forward)")],
+        strict=True,
+    ):
+        if len(p):
+            sc = ax.scatter(p[:, i], p[:, j], c=p[:, 2], s=2, cmap="turbo")
+            ax.set_aspect("equal")
+            if j == 1:
+                ax.invert_yaxis()
+        ax.set_title(f"reference cloud, {name}")
+        ax.set_xlabel("m")
+    if sc is not None:
+        fig.colorbar(sc, ax=axes[2], fraction=0.04, label="depth (m)")
+    fig.suptitle(f"{title}  ({len(p)} points)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)

@@ -1,0 +1,146 @@
+"""One reference cloud: render depth at a pruning pose, apply the D405 model, run the shared
+perception chain, and read/write the result (PLY, PCD for PCL users, JSON sidecar)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from vinetwin.camera import CameraModel
+from vinetwin.cloud import Cloud, PerceptionConfig, perceive
+from vinetwin.errors import VinetwinError
+from vinetwin.render.backends import DepthBackend
+from vinetwin.render.sensor import SensorConfig, apply_d405_model
+
+log = logging.getLogger(__name__)
+
+#: Bump when the rendering or perception algorithm changes what a reference holds: every
+#: exported reference is then re-rendered on the next export.
+REFERENCE_FORMAT = 1
+
+
+def pose_seed(base_seed: int, pose_id: str) -> int:
+    """A stable per-pose noise seed derived from the export seed and the pose id."""
+    h = hashlib.sha256(f"{base_seed}:{pose_id}".encode()).digest()
+    return int.from_bytes(h[:4], "little")
+
+
+@dataclass
+class Reference:
+    """A rendered reference: the cloud (reference camera frame) and the depth it came from."""
+
+    cloud: Cloud
+    depth: npt.NDArray[np.float32]
+    seed: int
+
+
+def render_reference(
+    backend: DepthBackend,
+    T_vine_camera: Any,
+    perception: PerceptionConfig,
+    sensor: SensorConfig,
+    seed: int,
+) -> Reference:
+    """Depth at the pose -> D405 model -> perception chain. Warns when the view is empty."""
+    clean = backend.render(T_vine_camera)
+    depth = apply_d405_model(clean, backend.camera, np.random.default_rng(seed), sensor)
+    cloud = perceive(depth, backend.camera, perception, normals=True)
+    if cloud.empty:
+        log.warning(
+            "the view at this pose sees nothing within %.2f m: empty reference cloud",
+            perception.max_depth,
+        )
+    return Reference(cloud, depth, seed)
+
+
+# ----------------------------------------------------------------------------- files
+def write_ply(path: Path, cloud: Cloud) -> None:
+    """Binary little-endian PLY with float32 x y z (and nx ny nz when the cloud has normals)."""
+    names = ["x", "y", "z"] + (["nx", "ny", "nz"] if cloud.normals is not None else [])
+    data = cloud.points if cloud.normals is None else np.hstack([cloud.points, cloud.normals])
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment vinetwin reference cloud, metres, camera frame (OpenCV)\n"
+        f"element vertex {len(cloud)}\n"
+        + "".join(f"property float {n}\n" for n in names)
+        + "end_header\n"
+    )
+    _atomic(path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes())
+
+
+def write_pcd(path: Path, cloud: Cloud) -> None:
+    """PCL's PCD v0.7, binary, fields x y z (normal_x normal_y normal_z), viewpoint at origin."""
+    fields = ["x", "y", "z"] + (
+        ["normal_x", "normal_y", "normal_z"] if cloud.normals is not None else []
+    )
+    data = cloud.points if cloud.normals is None else np.hstack([cloud.points, cloud.normals])
+    k = len(fields)
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\n"
+        "VERSION 0.7\n"
+        f"FIELDS {' '.join(fields)}\n"
+        f"SIZE {' '.join(['4'] * k)}\n"
+        f"TYPE {' '.join(['F'] * k)}\n"
+        f"COUNT {' '.join(['1'] * k)}\n"
+        f"WIDTH {len(cloud)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(cloud)}\nDATA binary\n"
+    )
+    _atomic(path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes())
+
+
+def read_reference_cloud(path: Path) -> Cloud:
+    """Reads a reference PLY written by `write_ply` (or any PLY Open3D can read)."""
+    from vinetwin import _lazy
+
+    o3d = _lazy.open3d()
+    if not Path(path).exists():
+        raise VinetwinError(f"{path}: reference cloud does not exist; run `vinetwin export`")
+    pc = o3d.io.read_point_cloud(str(path))
+    pts = np.asarray(pc.points, dtype=np.float64)
+    nrm = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
+    return Cloud(pts, nrm)
+
+
+def _atomic(path: Path, data: bytes) -> None:
+    from vinetwin.twin.model import atomic_write_bytes
+
+    atomic_write_bytes(path, data)
+
+
+def inputs_digest(
+    mesh_sha256: str,
+    T_vine_camera: Any,
+    camera: CameraModel,
+    perception: PerceptionConfig,
+    sensor: SensorConfig,
+    backend: str,
+    seed: int,
+) -> str:
+    """Digest of everything a reference depends on: an unchanged digest means it can be skipped."""
+    blob = json.dumps(
+        {
+            "format": REFERENCE_FORMAT,
+            "mesh": mesh_sha256,
+            "T": np.round(np.asarray(T_vine_camera, dtype=np.float64), 12).tolist(),
+            "camera": camera.to_dict(),
+            "perception": perception.to_dict(),
+            "sensor": sensor.to_dict(),
+            "backend": backend,
+            "seed": seed,
+        },
+        sort_keys=True,
+    )
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
