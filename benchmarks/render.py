@@ -45,7 +45,9 @@ def open3d_chain(depth: np.ndarray, cam: CameraModel, cfg: PerceptionConfig) -> 
     o3d = _lazy.open3d()
     intr = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
     img = o3d.geometry.Image(depth.astype(np.float32))
-    pc = o3d.geometry.PointCloud.create_from_depth_image(img, intr, depth_scale=1.0, depth_trunc=cfg.max_depth)
+    pc = o3d.geometry.PointCloud.create_from_depth_image(
+        img, intr, depth_scale=1.0, depth_trunc=cfg.max_depth
+    )
     pc = pc.voxel_down_sample(cfg.voxel_size)
     pc, _ = pc.remove_statistical_outlier(cfg.sor_neighbors, cfg.sor_std_ratio)
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(cfg.normal_radius, cfg.normal_max_nn))
@@ -114,7 +116,13 @@ def time_backends(twin: Twin, n_poses: int, rng: np.random.Generator) -> list[di
 def time_export(twin: Twin, n_refs: int, workers: int, rng: np.random.Generator) -> dict[str, Any]:
     tmp = Path(tempfile.mkdtemp(prefix="vinetwin-bench-"))
     try:
-        dst = Path(shutil.copytree(twin.root, tmp / twin.root.name, ignore=shutil.ignore_patterns("references", "validation")))
+        dst = Path(
+            shutil.copytree(
+                twin.root,
+                tmp / twin.root.name,
+                ignore=shutil.ignore_patterns("references", "validation"),
+            )
+        )
         t = Twin.load(dst)
         cuts = list(t.cut_points)
         t.poses.clear()
@@ -160,8 +168,12 @@ def main() -> None:
     rng = np.random.default_rng(0)
     twin = Twin.load(SAMPLE)
     rows = time_backends(twin, n_poses, rng)
-    print(f"\nPer reference, median over {n_poses} poses of the bundled sample ({len(twin.load_mesh().faces)} triangles), ms:")
-    print(f"{'backend':9} {'res':9} {'render':>7} {'sensor':>7} {'chain':>7} {'total':>7} {'o3d chain':>9} {'ratio':>6} {'points':>6}")
+    print(
+        f"\nPer reference, median over {n_poses} poses of the bundled sample ({len(twin.load_mesh().faces)} triangles), ms:"
+    )
+    print(
+        f"{'backend':9} {'res':9} {'render':>7} {'sensor':>7} {'chain':>7} {'total':>7} {'o3d chain':>9} {'ratio':>6} {'points':>6}"
+    )
     for r in rows:
         if "skipped" in r:
             print(f"{r['backend']:9} {r['resolution']:9} skipped: {r['skipped']}")
@@ -173,7 +185,9 @@ def main() -> None:
             f"{r['backend']:9} {r['resolution']:9} {r['render_ms']:7.1f} {r['sensor_ms']:7.1f} "
             f"{r['perception_ms']:7.1f} {r['reference_ms']:7.1f} {o3d_s} {ratio} {r['points']:6d}"
         )
-    print("(chain = vinetwin's perception chain; o3d chain = the same steps with Open3D's functions;")
+    print(
+        "(chain = vinetwin's perception chain; o3d chain = the same steps with Open3D's functions;"
+    )
     print(" ratio = ours / Open3D's, lower is faster)")
     exp = time_export(twin, n_refs, args.workers, rng)
     print(

@@ -179,7 +179,7 @@ def test_export_writes_loadable_files_and_resumes(twin_copy: Twin) -> None:
         "skipped"
     ] * 3
     cut = twin_copy.cut_point(twin_copy.pose(ids[1]).cut_point)
-    twin_copy.move_cut_point(cut.id, [*cut.point, 0.0, 0.0, 0.005])
+    twin_copy.move_cut_point(cut.id, cut.point + np.array([0.0, 0.0, 0.005]))
     statuses = [r.status for r in export_references(twin_copy, ids, workers=1).results]
     assert statuses == ["skipped", "rendered", "skipped"]
 

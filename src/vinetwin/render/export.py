@@ -5,7 +5,11 @@ intrinsics, backend, noise seed, perception and sensor settings, tool version, a
 all inputs). A reference whose JSON carries the same digest as its current inputs, with both
 cloud files present, is skipped, so an interrupted export resumes where it stopped. A pose that
 fails is reported and the others still finish. Work is spread over worker processes (spawned,
-each loading the mesh and its backend once).
+each loading the mesh and its backend once, BLAS/OpenMP capped to their share of the cores).
+
+Measured on 2 cores (benchmarks/render.py): Open3D's ray caster (Embree) already uses every core
+from one process and pins its own threads, so with the default backend 2 workers give no more
+throughput than 1; pyrender and MuJoCo render on one core and do gain from workers.
 """
 
 from __future__ import annotations
@@ -80,6 +84,7 @@ class _Job:
 
 # ----------------------------------------------------------------------------- workers
 _WORKER: dict[str, Any] = {}
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def _init_worker(
@@ -238,13 +243,21 @@ def export_references(
         import multiprocessing as mp
 
         n = min(workers, len(jobs))
+        ctx = mp.get_context("spawn")
         threads = max(1, (os.cpu_count() or 1) // n)
-        with ProcessPoolExecutor(
-            n,
-            mp_context=mp.get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(*init_args, threads),
-        ) as pool:
+        saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+        os.environ.update({k: str(threads) for k in _THREAD_VARS})  # inherited by spawned workers
+        try:
+            pool = ProcessPoolExecutor(
+                n, mp_context=ctx, initializer=_init_worker, initargs=(*init_args, threads)
+            )
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+        with pool:
             pending: set[Future[PoseResult]] = set()
             queue = list(jobs)
             by_future: dict[Future[PoseResult], _Job] = {}

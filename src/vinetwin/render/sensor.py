@@ -94,6 +94,18 @@ def apply_d405_model(
     if not (0 <= cfg.edge_invalid <= 1 and 0 <= cfg.edge_smear <= 1 and 0 <= cfg.dropout <= 1):
         raise InputError("sensor probabilities must lie in [0, 1]")
     valid = d > 0
+    if not valid.any():
+        return d
+    # work inside the bounding box of the valid pixels (plus a margin): a vine fills little of it
+    rows, cols = np.nonzero(valid.any(1))[0], np.nonzero(valid.any(0))[0]
+    m = cfg.edge_width + 1
+    box = (
+        slice(max(rows[0] - m, 0), rows[-1] + m + 1),
+        slice(max(cols[0] - m, 0), cols[-1] + m + 1),
+    )
+    full = d
+    d = d[box].copy()
+    valid = valid[box]
 
     if cfg.edge_width > 0 and (cfg.edge_invalid > 0 or cfg.edge_smear > 0 or cfg.edge_fatten > 0):
         from scipy import ndimage
@@ -103,38 +115,43 @@ def apply_d405_model(
         holes = ndimage.minimum_filter(valid, size=2 * cfg.edge_width + 1, mode="nearest") == 0
         big_jump = (far - near) > cfg.edge_jump * np.where(near_ok, near, 1.0)
         edge = near_ok & (big_jump | holes)
-        u = rng.random(d.shape, dtype=np.float32)
+        # draw random numbers only for silhouette pixels (a small part of the image)
+        ev, eu = np.nonzero(edge)
+        dv, nv, fv = d[ev, eu], near[ev, eu], far[ev, eu]
+        u1 = rng.random(len(ev), dtype=np.float32)
+        u2 = rng.random(len(ev), dtype=np.float32)
+        u3 = rng.random(len(ev), dtype=np.float32)
+        on = dv > 0
         # foreground fattening: background (or empty) pixels beside a near surface take its depth
-        behind = edge & ((~valid) | (d > near * (1 + cfg.edge_jump)))
-        fatten = behind & (u < cfg.edge_fatten)
-        out = d.copy()
-        out[fatten] = near[fatten]
-        rest = edge & ~fatten
-        u2 = rng.random(d.shape, dtype=np.float32)
-        invalid = rest & (u2 < cfg.edge_invalid)
+        fatten = ((~on) | (dv > nv * (1 + cfg.edge_jump))) & (u1 < cfg.edge_fatten)
+        invalid = ~fatten & (u2 < cfg.edge_invalid)
         smear = (
-            rest
+            ~fatten
             & ~invalid
-            & valid
+            & on
             & (u2 < cfg.edge_invalid + (1 - cfg.edge_invalid) * cfg.edge_smear)
         )
-        if smear.any():
-            lo = near[smear]
-            hi = np.where(far[smear] > 0, far[smear], lo)
-            out[smear] = lo + rng.random(int(smear.sum()), dtype=np.float32) * (hi - lo)
-        out[invalid] = 0.0
+        new = dv.copy()
+        new[fatten] = nv[fatten]
+        hi = np.where(fv > 0, fv, nv)
+        new[smear] = nv[smear] + u3[smear] * (hi[smear] - nv[smear])
+        new[invalid] = 0.0
+        out = d.copy()
+        out[ev, eu] = new
         d = out
         valid = d > 0
 
+    # the rest touches valid pixels only
+    vv, vu = np.nonzero(valid)
+    z = d[vv, vu].astype(np.float64)
     if cfg.noise:
         sub = camera.subpixel if cfg.subpixel is None else cfg.subpixel
-        sigma = d[valid].astype(np.float64) ** 2 * sub / (camera.fx * camera.baseline)
-        d[valid] = (d[valid] + rng.standard_normal(int(valid.sum())) * sigma).astype(np.float32)
-
+        z += rng.standard_normal(len(z)) * (z * z * sub / (camera.fx * camera.baseline))
     if cfg.dropout > 0:
-        d[valid & (rng.random(d.shape, dtype=np.float32) < cfg.dropout)] = 0.0
-
-    d[(d < camera.min_depth) | (d > camera.max_depth)] = 0.0
+        z[rng.random(len(z)) < cfg.dropout] = 0.0
+    z[(z < camera.min_depth) | (z > camera.max_depth)] = 0.0
     if cfg.quantize:
-        d = (np.round(d / camera.depth_unit) * camera.depth_unit).astype(np.float32)
-    return d
+        z = np.round(z / camera.depth_unit) * camera.depth_unit
+    d[vv, vu] = z
+    full[box] = d
+    return full
