@@ -157,7 +157,7 @@ def time_export(twin: Twin, n_refs: int, workers: int, rng: np.random.Generator)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="few poses and references (CI smoke run)")
     ap.add_argument("--poses", type=int, default=40, help="poses timed per backend and resolution")
     ap.add_argument("--refs", type=int, default=1000, help="references in the export run")

@@ -24,7 +24,7 @@ SAMPLE = Path(__file__).resolve().parent / "vine_unilateral.twin"
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--out", type=Path, default=Path(tempfile.mkdtemp()) / "copy.twin")
     ap.add_argument(
         "--quick", action="store_true", help="accepted for CI; this sample is quick anyway"

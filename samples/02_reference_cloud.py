@@ -25,7 +25,7 @@ SAMPLE = Path(__file__).resolve().parent / "vine_bilateral.twin"
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--out", type=Path, default=Path("preview.png"))
     ap.add_argument("--quick", action="store_true", help="open3d only")
     args = ap.parse_args()

@@ -113,7 +113,9 @@ class Open3DBackend:
         # every full-resolution pixel within s px of a coarse hit
         near = ndimage.binary_dilation(coarse, iterations=1)
         todo = np.repeat(np.repeat(near, s, axis=0), s, axis=1)[: cam.height, : cam.width]
-        todo = ndimage.binary_dilation(todo, iterations=s - 1) if s > 2 else todo
+        if s > 2:
+            todo = ndimage.binary_dilation(todo, iterations=s - 1)
+        todo = np.asarray(todo, dtype=bool)
         depth = np.zeros((cam.height, cam.width), np.float32)
         if todo.any():
             depth[todo] = self._cast(T, self._dirs[todo])
