@@ -14,10 +14,11 @@ into a pose error. Steps (the paper's, plus a cheap image-space filter):
 6. normals (for point-to-plane and symmetric ICP), oriented towards the camera. They come from
    the organised depth image (central differences of neighbouring pixels) averaged per voxel,
    which is far cheaper than a neighbour search on the points and averages the noise of ~100
-   pixels per voxel.
+   pixels per voxel. A voxel made only of pixels whose normal is undefined (a 1-2 px sliver at
+   a silhouette) is dropped when normals are asked for.
 
-numpy and scipy only; the steps match Open3D's `voxel_down_sample` and
-`remove_statistical_outlier` (tests/test_cloud.py compares them).
+The per-pixel and per-point loops are compiled (`vinetwin._kernels`, numba); the steps match
+Open3D's `voxel_down_sample` and `remove_statistical_outlier` (tests/test_cloud.py compares them).
 """
 
 from __future__ import annotations
@@ -84,48 +85,6 @@ class Cloud:
         return len(self) == 0
 
 
-def _flying_pixels(d: npt.NDArray[np.float32], threshold: float) -> npt.NDArray[np.bool_]:
-    """Pixels whose depth differs from a valid 4-neighbour by more than threshold * depth."""
-    bad = np.zeros(d.shape, dtype=bool)
-    for axis in (0, 1):
-        a = np.moveaxis(d, axis, 0)
-        b = np.moveaxis(bad, axis, 0)
-        up, down = a[:-1], a[1:]
-        both = (up > 0) & (down > 0)
-        jump = both & (np.abs(up - down) > threshold * np.minimum(up, down))
-        b[:-1] |= jump & (up > down)  # the far side of a jump is the flying one
-        b[1:] |= jump & (down > up)
-    return bad
-
-
-def _pixel_normals(
-    d: npt.NDArray[np.float32],
-    camera: CameraModel,
-    vs: npt.NDArray[np.intp],
-    us: npt.NDArray[np.intp],
-    step: int = 2,
-) -> npt.NDArray[np.float64]:
-    """Unnormalised normals of valid pixels (vs, us) from the organised depth image: the cross
-    product of central differences `step` px apart (zero where a neighbour is invalid)."""
-    H, W = d.shape
-    u0, u1 = np.clip(us - step, 0, W - 1), np.clip(us + step, 0, W - 1)
-    v0, v1 = np.clip(vs - step, 0, H - 1), np.clip(vs + step, 0, H - 1)
-
-    def point(v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        z = d[v, u].astype(np.float64)
-        return np.column_stack(
-            [(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z]
-        ), z > 0
-
-    pl, okl = point(vs, u0)
-    pr, okr = point(vs, u1)
-    pu, oku = point(v0, us)
-    pd, okd = point(v1, us)
-    n = np.cross(pr - pl, pd - pu)
-    n[~(okl & okr & oku & okd)] = 0.0
-    return n
-
-
 def voxel_downsample(
     points: npt.NDArray[np.float64],
     voxel: float,
@@ -141,21 +100,15 @@ def voxel_downsample(
     """
     if voxel <= 0 or len(points) == 0:
         return points, normals
-    o = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
-    keys = np.floor((points - o) / voxel).astype(np.int64)
-    keys -= keys.min(0)
-    dims = keys.max(0) + 1
-    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    out = np.empty((len(counts), 3))
-    for i in range(3):
-        out[:, i] = np.bincount(inv, weights=points[:, i], minlength=len(counts)) / counts
-    nout = None
-    if normals is not None:
-        nout = np.empty((len(counts), 3))
-        for i in range(3):
-            nout[:, i] = np.bincount(inv, weights=normals[:, i], minlength=len(counts))
-    return out, nout
+    from vinetwin import _kernels
+
+    o = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    nrm = (
+        np.ascontiguousarray(normals, dtype=np.float64) if normals is not None else np.zeros((0, 3))
+    )
+    out, nout = _kernels.voxel_grid(pts, nrm, float(voxel), o[0], o[1], o[2], normals is not None)
+    return out, (nout if normals is not None else None)
 
 
 def statistical_outliers(
@@ -188,19 +141,25 @@ def perceive(
 
     An empty or all-invalid image (NaN, zeros) gives an empty cloud, never an exception.
     """
+    from vinetwin import _kernels
+
     cfg = config or PerceptionConfig()
-    d = np.array(camera.check_depth(depth), dtype=np.float32, copy=True)
-    d[~np.isfinite(d)] = 0.0
-    d[(d < max(cfg.min_depth, 1e-6)) | (d > cfg.max_depth)] = 0.0
-    if cfg.edge_threshold > 0:
-        d[_flying_pixels(d, cfg.edge_threshold)] = 0.0
-    valid = d > 0
-    if not valid.any():
+    d = np.ascontiguousarray(camera.check_depth(depth), dtype=np.float32)
+    pts, nrm_all = _kernels.organised_points(
+        d,
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        max(cfg.min_depth, 1e-6),
+        cfg.max_depth,
+        cfg.edge_threshold,
+        2,
+        normals,
+    )
+    if len(pts) == 0:
         return Cloud(np.empty((0, 3)), np.empty((0, 3)) if normals else None)
-    vs, us = np.nonzero(valid)
-    z = d[vs, us].astype(np.float64)
-    pts = np.column_stack([(us - camera.cx) / camera.fx * z, (vs - camera.cy) / camera.fy * z, z])
-    nrm = _pixel_normals(d, camera, vs, us) if normals else None
+    nrm = nrm_all if normals else None
     pts, nrm = voxel_downsample(pts, cfg.voxel_size, nrm)
     keep = statistical_outliers(pts, int(cfg.sor_neighbors), cfg.sor_std_ratio)
     pts = pts[keep]
