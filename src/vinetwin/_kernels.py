@@ -131,3 +131,41 @@ def voxel_grid(
             out[s, k] = acc[s, k] / cnt[s]
             nout[s, k] = nacc[s, k]
     return out, nout
+
+
+@nb.njit(cache=True, nogil=True)
+def window_extremes(depth: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each pixel, over the (2w+1)^2 window (clipped at the border): the nearest valid depth
+    (inf if none), the farthest depth (0 if none) and whether the window holds an invalid pixel."""
+    H, W = depth.shape
+    near = np.full((H, W), np.inf, np.float32)
+    far = np.zeros((H, W), np.float32)
+    holes = np.zeros((H, W), np.bool_)
+    # separable: rows first, then columns
+    rnear = np.full((H, W), np.inf, np.float32)
+    rfar = np.zeros((H, W), np.float32)
+    rhole = np.zeros((H, W), np.bool_)
+    for v in range(H):
+        for u in range(W):
+            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
+            for uu in range(max(0, u - w), min(W, u + w + 1)):
+                z = depth[v, uu]
+                if z > 0:
+                    if z < lo:
+                        lo = z
+                    if z > hi:
+                        hi = z
+                else:
+                    hole = True
+            rnear[v, u], rfar[v, u], rhole[v, u] = lo, hi, hole
+    for v in range(H):
+        for u in range(W):
+            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
+            for vv in range(max(0, v - w), min(H, v + w + 1)):
+                if rnear[vv, u] < lo:
+                    lo = rnear[vv, u]
+                if rfar[vv, u] > hi:
+                    hi = rfar[vv, u]
+                hole = hole or rhole[vv, u]
+            near[v, u], far[v, u], holes[v, u] = lo, hi, hole
+    return near, far, holes

@@ -62,16 +62,6 @@ class SensorConfig:
         return cls(**{k: v for k, v in data.items() if k in names})
 
 
-def _neighbour_extremes(d: npt.NDArray[np.float32], width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest (smallest valid) and farthest depth within `width` px (square window)."""
-    from scipy import ndimage
-
-    size = 2 * width + 1
-    far = ndimage.maximum_filter(d, size=size, mode="nearest")
-    near = ndimage.minimum_filter(np.where(d > 0, d, np.inf), size=size, mode="nearest")
-    return near, far
-
-
 def apply_d405_model(
     depth: Any,
     camera: CameraModel,
@@ -108,11 +98,10 @@ def apply_d405_model(
     valid = valid[box]
 
     if cfg.edge_width > 0 and (cfg.edge_invalid > 0 or cfg.edge_smear > 0 or cfg.edge_fatten > 0):
-        from scipy import ndimage
+        from vinetwin import _kernels
 
-        near, far = _neighbour_extremes(d, cfg.edge_width)
+        near, far, holes = _kernels.window_extremes(np.ascontiguousarray(d), int(cfg.edge_width))
         near_ok = np.isfinite(near)  # some surface within the window
-        holes = ndimage.minimum_filter(valid, size=2 * cfg.edge_width + 1, mode="nearest") == 0
         big_jump = (far - near) > cfg.edge_jump * np.where(near_ok, near, 1.0)
         edge = near_ok & (big_jump | holes)
         # draw random numbers only for silhouette pixels (a small part of the image)
