@@ -118,8 +118,9 @@ class Export:
     """Pose ids to export (default: all)."""
     backend: BackendChoice = "open3d"
     """Depth renderer: open3d (ray casting, no OpenGL), pyrender or mujoco (EGL)."""
-    workers: int = 2
-    """Worker processes (1 renders in this process)."""
+    workers: int = 0
+    """Worker processes; 0 chooses (1 for open3d, whose ray caster already uses every core; one
+    per core for pyrender and mujoco)."""
     seed: int = 0
     """Base seed of the D405 noise; each pose derives its own."""
     force: bool = False

@@ -159,7 +159,7 @@ def export_references(
     pose_ids: Sequence[str] | None = None,
     *,
     backend: str = "open3d",
-    workers: int = 2,
+    workers: int = 0,
     seed: int = 0,
     sensor: SensorConfig | None = None,
     force: bool = False,
@@ -171,7 +171,8 @@ def export_references(
         twin: the loaded twin.
         pose_ids: poses to export (default: all).
         backend: depth backend (open3d, pyrender, mujoco).
-        workers: worker processes; 1 renders in this process.
+        workers: worker processes; 1 renders in this process; 0 chooses: 1 for open3d (its
+            ray caster already uses every core), one per core for pyrender and mujoco.
         seed: base noise seed; each pose derives its own from it and its id.
         sensor: D405 model settings (default SensorConfig()).
         force: re-render even references whose inputs did not change.
@@ -220,6 +221,8 @@ def export_references(
         }
         jobs.append(_Job(p.id, np.asarray(p.T_vine_camera).tolist(), s, digest, str(out), meta))
 
+    if workers <= 0:
+        workers = 1 if backend == "open3d" else max(1, os.cpu_count() or 1)
     init_args = (
         str(twin.mesh_path),
         twin.camera.to_dict(),
