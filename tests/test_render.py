@@ -230,3 +230,36 @@ def test_unknown_pose_and_backend(twin_copy: Twin) -> None:
         export_references(twin_copy, ["p99"])
     with pytest.raises(InputError, match="choose one of"):
         export_references(twin_copy, backend="vtk")
+
+
+@pytest.mark.parametrize(
+    ("backend", "env", "needle"),
+    [
+        ("mujoco", {"MUJOCO_GL": "bogus"}, "MUJOCO_GL"),
+        ("pyrender", {"PYOPENGL_PLATFORM": "bogus"}, "PYOPENGL_PLATFORM"),
+    ],
+)
+def test_backend_that_cannot_start_says_why(backend: str, env: dict[str, str], needle: str) -> None:
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\n"
+        "from vinetwin.camera import d405\n"
+        "from vinetwin.errors import BackendUnavailable\n"
+        "from vinetwin.render.backends import get_backend\n"
+        "try:\n"
+        f"    get_backend({backend!r}, np.eye(3), [[0, 1, 2]], d405())\n"
+        "except BackendUnavailable as exc:\n"
+        "    print('UNAVAILABLE', exc.backend, exc.reason)\n"
+    )
+    environ = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM", "DISPLAY")
+    }
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=environ | env, capture_output=True, text=True, timeout=120
+    )
+    assert f"UNAVAILABLE {backend}" in out.stdout and needle in out.stdout, out.stderr[-1000:]
