@@ -105,8 +105,9 @@ def so3_log(R: Any) -> Array:
     """Rotation vector theta*u of a rotation matrix, theta in [0, pi]; stable near 0 and pi."""
     R = np.asarray(R, dtype=np.float64)
     cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = float(np.arccos(cos_theta))
     vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    # atan2 of (sin, cos) keeps full precision at small angles, where arccos loses half the digits
+    theta = float(np.arctan2(0.5 * np.linalg.norm(vee), cos_theta))
     if theta < 1e-6:
         return 0.5 * vee
     if np.pi - theta > 1e-4:
