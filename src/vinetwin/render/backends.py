@@ -22,8 +22,9 @@ import numpy.typing as npt
 from vinetwin import _lazy
 from vinetwin import conventions as cv
 from vinetwin.camera import CameraModel
-from vinetwin.errors import BackendUnavailable, InputError, MeshError
+from vinetwin.errors import BackendUnavailable, InputError
 from vinetwin.frames import check_pose
+from vinetwin.twin.model import check_mesh_arrays
 
 BackendName = Literal["open3d", "pyrender", "mujoco"]
 BACKENDS: tuple[BackendName, ...] = ("open3d", "pyrender", "mujoco")
@@ -44,19 +45,10 @@ class DepthBackend(Protocol):
 
 
 def check_mesh(vertices: Any, faces: Any) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
-    """Validates mesh arrays for rendering; raises MeshError naming the problem."""
-    V = np.asarray(vertices)
-    F = np.asarray(faces)
-    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
-        raise MeshError(f"mesh vertices must have shape (V, 3) with V > 0, got {V.shape}")
-    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
-        raise MeshError(f"mesh has no triangle faces (faces shape {F.shape})")
-    if not np.all(np.isfinite(V)):
-        raise MeshError(
-            f"mesh has {int((~np.isfinite(V)).any(1).sum())} non-finite (NaN/inf) vertices"
-        )
-    if F.min() < 0 or F.max() >= len(V):
-        raise MeshError(f"mesh faces index vertices out of range 0..{len(V) - 1}")
+    """Validates mesh arrays for rendering (MeshError naming the problem); returns float32
+    vertices and uint32 faces."""
+    V, F = np.asarray(vertices), np.asarray(faces)
+    check_mesh_arrays(V, F, "mesh")
     return V.astype(np.float32), F.astype(np.uint32)
 
 

@@ -277,7 +277,7 @@ class Twin:
             raise TwinError(f"{root}: already holds a twin; pass overwrite=True to replace it")
         V = np.asarray(vertices, dtype=np.float64)
         F = np.asarray(faces)
-        _check_mesh_arrays(V, F, str(root))
+        check_mesh_arrays(V, F, str(root))
         root.mkdir(parents=True, exist_ok=True)
         twin = cls(root=root, name=name or root.name.removesuffix(".twin"), camera=camera or d405())
         twin.write_mesh(V, F)
@@ -296,7 +296,7 @@ class Twin:
         """Writes the mesh as binary PLY (float32 vertices, metres), atomically."""
         import trimesh
 
-        _check_mesh_arrays(vertices, faces, str(self.mesh_path))
+        check_mesh_arrays(vertices, faces, str(self.mesh_path))
         mesh = trimesh.Trimesh(vertices.astype(np.float32), faces, process=False)
         data = mesh.export(file_type="ply", encoding="binary")
         if not isinstance(data, bytes):
@@ -612,7 +612,9 @@ class Twin:
 
 
 # ----------------------------------------------------------------------------- meshes
-def _check_mesh_arrays(V: Any, F: Any, where: str) -> None:
+def check_mesh_arrays(V: Any, F: Any, where: str) -> None:
+    """Raises MeshError naming the problem: bad shapes, no faces, non-finite vertices, faces
+    indexing missing vertices."""
     V = np.asarray(V)
     F = np.asarray(F)
     if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
@@ -641,7 +643,7 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
         raise MeshError(f"{path}: cannot read mesh: {type(exc).__name__}: {exc}") from exc
     if not isinstance(mesh, trimesh.Trimesh):
         raise MeshError(f"{path}: not a triangle mesh")
-    _check_mesh_arrays(mesh.vertices, mesh.faces, str(path))
+    check_mesh_arrays(mesh.vertices, mesh.faces, str(path))
     return mesh
 
 
