@@ -3,7 +3,6 @@ imports what it needs, so `vinetwin --help` stays fast."""
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import sys
 from dataclasses import dataclass
@@ -331,15 +330,6 @@ def main(argv: list[str] | None = None) -> int:
         log.error("interrupted")
         return 130
     return 0
-
-
-def resolved_config(cmd: object) -> dict[str, object]:
-    """The subcommand's settings as plain JSON values (written beside a run's outputs)."""
-    assert dataclasses.is_dataclass(cmd)
-    return {
-        k: (str(v) if isinstance(v, Path) else v)
-        for k, v in dataclasses.asdict(cmd).items()  # type: ignore[arg-type]
-    }
 
 
 if __name__ == "__main__":

@@ -77,7 +77,6 @@ class _Job:
     pose_id: str
     T_vine_camera: list[list[float]]
     seed: int
-    digest: str
     out_dir: str
     meta: dict[str, Any]
 
@@ -219,7 +218,7 @@ def export_references(
             "inputs_sha256": digest,
             "vinetwin_version": vinetwin.__version__,
         }
-        jobs.append(_Job(p.id, np.asarray(p.T_vine_camera).tolist(), s, digest, str(out), meta))
+        jobs.append(_Job(p.id, np.asarray(p.T_vine_camera).tolist(), s, str(out), meta))
 
     if workers <= 0:
         workers = 1 if backend == "open3d" else max(1, os.cpu_count() or 1)
