@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from vinetwin._config import JsonFields
 from vinetwin.errors import CameraError, InputError
 from vinetwin.frames import Array, as_points
 
@@ -42,7 +43,7 @@ D405_MAX_DEPTH_M = 1.0
 
 
 @dataclass(frozen=True, kw_only=True)
-class CameraModel:
+class CameraModel(JsonFields):
     """A pinhole depth camera in the OpenCV convention (+X right, +Y down, +Z forward)."""
 
     width: int
@@ -178,16 +179,6 @@ class CameraModel:
             cx=(self.cx + 0.5) * sx - 0.5,
             cy=(self.cy + 0.5) * sy - 0.5,
         )
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON form (the `camera` block of twin.json)."""
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> CameraModel:
-        """Inverse of `to_dict`; unknown keys are ignored."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in data.items() if k in names})
 
     @classmethod
     def from_realsense(

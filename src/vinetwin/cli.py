@@ -185,6 +185,12 @@ class Preview:
         )
         backend.close()
         save_preview(ref, self.out, f"{twin.name} / {pose.id} ({self.backend})")
+        if ref.cloud.empty:
+            log.warning(
+                "pose %s sees nothing within %.2f m: empty reference cloud",
+                pose.id,
+                twin.perception.max_depth,
+            )
         log.info("wrote %s (%d points)", self.out, len(ref.cloud))
 
 

@@ -23,13 +23,13 @@ Open3D's `voxel_down_sample` and `remove_statistical_outlier` (tests/test_cloud.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from vinetwin._config import JsonFields
 from vinetwin.camera import CameraModel
 
 #: ICP variants known to vinetwin (the paper's four).
@@ -37,7 +37,7 @@ ICP_VARIANTS = ("point_to_point", "lm", "point_to_plane", "symmetric")
 
 
 @dataclass(frozen=True, kw_only=True)
-class PerceptionConfig:
+class PerceptionConfig(JsonFields):
     """Settings of the perception chain (stored in twin.json under `perception`)."""
 
     max_depth: float = 0.40
@@ -58,14 +58,6 @@ class PerceptionConfig:
     """Search radius (m) for normals."""
     normal_max_nn: int = 20
     """Most neighbours used for a normal."""
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> PerceptionConfig:
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in data.items() if k in names})
 
 
 # ----------------------------------------------------------------------------- the chain

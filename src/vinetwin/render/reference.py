@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,8 +17,6 @@ from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.errors import VinetwinError
 from vinetwin.render.backends import DepthBackend
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
-
-log = logging.getLogger(__name__)
 
 #: Bump when the rendering or perception algorithm changes what a reference holds: every
 #: exported reference is then re-rendered on the next export.
@@ -48,15 +45,11 @@ def render_reference(
     sensor: SensorConfig,
     seed: int,
 ) -> Reference:
-    """Depth at the pose -> D405 model -> perception chain. Warns when the view is empty."""
+    """Depth at the pose -> D405 model -> perception chain. An empty view gives an empty cloud;
+    the caller reports it (export in its report and log, preview in its log)."""
     clean = backend.render(T_vine_camera)
     depth = apply_d405_model(clean, backend.camera, np.random.default_rng(seed), sensor)
     cloud = perceive(depth, backend.camera, perception, normals=True)
-    if cloud.empty:
-        log.warning(
-            "the view at this pose sees nothing within %.2f m: empty reference cloud",
-            perception.max_depth,
-        )
     return Reference(cloud, depth, seed)
 
 

@@ -17,19 +17,19 @@ Applied in this order, all seeded through one `numpy.random.Generator`:
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from vinetwin._config import JsonFields
 from vinetwin.camera import CameraModel
 from vinetwin.errors import InputError
 
 
 @dataclass(frozen=True, kw_only=True)
-class SensorConfig:
+class SensorConfig(JsonFields):
     """Settings of the D405 sensor model; `SensorConfig(enabled=False)` gives clean depth."""
 
     enabled: bool = True
@@ -52,14 +52,6 @@ class SensorConfig:
     """Fraction of valid pixels dropped uniformly at random."""
     quantize: bool = True
     """Round depth to the camera's depth unit."""
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> SensorConfig:
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in data.items() if k in names})
 
 
 def apply_d405_model(

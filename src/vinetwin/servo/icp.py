@@ -31,7 +31,7 @@ import numpy.typing as npt
 
 from vinetwin.cloud import ICP_VARIANTS, Cloud, voxel_downsample
 from vinetwin.errors import InputError
-from vinetwin.frames import Array, make_pose, so3_exp
+from vinetwin.frames import Array, make_pose, skew, so3_exp
 
 NDF = npt.NDArray[np.float64]
 
@@ -293,8 +293,8 @@ class ICP:
         qx = q * w[:, None]
         A[:3, :3] = sw * np.eye(3)
         S = qx.sum(0)
-        A[:3, 3:] = -_skew(S)
-        A[3:, :3] = _skew(S)
+        A[:3, 3:] = -skew(S)
+        A[3:, :3] = skew(S)
         qq = (q * qx).sum()  # sum w |q|^2
         A[3:, 3:] = qq * np.eye(3) - (q.T * w) @ q
         g[:3] = (r * w[:, None]).sum(0)
@@ -337,8 +337,3 @@ class ICP:
                 f"best one (e.g. a single straight cane: sliding along it or rolling about it)"
             )
         return ""
-
-
-def _skew(v: NDF) -> NDF:
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
