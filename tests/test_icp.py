@@ -37,7 +37,10 @@ def test_scan_pair_registers_to_ground_truth(scan_pair, variant: str) -> None:  
     icp = ICP(
         target,
         ICPConfig(
-            variant=variant, max_correspondence_distance=1.0, schedule=(2.0, 1.0), max_iterations=60
+            variant=variant,
+            max_correspondence_distance=1.0,
+            schedule=((2.0, 4.0), (1.0, 2.0)),
+            max_iterations=60,
         ),
     )
     r = icp.align(source, np.eye(4))
@@ -53,7 +56,10 @@ def test_agrees_with_open3d(scan_pair, variant: str) -> None:  # type: ignore[no
     target, source, T_true = scan_pair
     init = T_true @ fr.random_pose(np.random.default_rng(0), 0.3, np.radians(2))
     ours = ICP(
-        target, ICPConfig(variant=variant, max_correspondence_distance=1.0, max_iterations=100)
+        target,
+        ICPConfig(
+            variant=variant, max_correspondence_distance=1.0, max_iterations=100, schedule=()
+        ),
     ).align(source, init)
     est = (
         o3d.pipelines.registration.TransformationEstimationPointToPoint()

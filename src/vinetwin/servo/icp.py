@@ -7,23 +7,24 @@
 - `symmetric`: `sum ((n_p + n_q) . (R p - R^-1 q + t))^2`, linearised with half rotations
   (Rusinkiewicz 2019).
 
-The reference never changes during a servo: `ICP(reference_cloud, config)` builds its search
-tree once; `align(current_cloud, T_init)` runs per frame. Correspondences farther than
-`max_correspondence_distance` are rejected. An optional coarse-to-fine `schedule` of voxel sizes
-runs the registration on downsampled clouds first.
+The reference never changes during a servo: `ICP(reference_cloud, config)` builds its
+k-d trees (one per voxel size of its levels) once; `align(current_cloud, T_init)` runs per frame, each
+level in one compiled call (`vinetwin.servo._icp_kernels`). A registration runs through levels,
+coarse to fine: each level is (voxel size, maximum correspondence distance). The default shrinks
+the distance at full resolution (3 cm, 1 cm, then `max_correspondence_distance`): a wide first
+reach pulls a warm start in, a tight last one keeps the partial overlap of two views (canes
+entering or leaving the image) from biasing the result. `ICPConfig.coarse_to_fine()` adds
+downsampled levels for starts far from the goal.
 
 Failures come back as a result with `converged=False` and a `reason`, never as an exception from
 inside numpy: an empty or non-finite cloud, too few points or correspondences, or a geometry that
 constrains fewer than six degrees of freedom (a single straight cane: sliding along it and
 rolling about it are unobservable).
-
-This is the correctness reference implementation (numpy + scipy's KD-tree); the speed work of
-the servo issue (compiled kernels, projective association) is not in it yet.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,7 +32,9 @@ import numpy.typing as npt
 
 from vinetwin.cloud import ICP_VARIANTS, Cloud, voxel_downsample
 from vinetwin.errors import InputError
-from vinetwin.frames import Array, make_pose, skew, so3_exp
+from vinetwin.frames import Array
+from vinetwin.servo import _icp_kernels as K
+from vinetwin.servo._icp_kernels import NNTree
 
 NDF = npt.NDArray[np.float64]
 
@@ -42,17 +45,17 @@ class ICPConfig:
 
     variant: str = "point_to_plane"
     """One of point_to_point, lm, point_to_plane, symmetric."""
-    max_correspondence_distance: float = 0.01
-    """Pairs farther apart than this (m) are rejected."""
+    max_correspondence_distance: float = 0.005
+    """Pairs farther apart than this (m) are rejected at the final level."""
     max_iterations: int = 40
     """Iterations per level."""
     tolerance_translation: float = 1e-6
     """Convergence when an update moves less than this (m)..."""
     tolerance_rotation: float = 1e-6
     """...and turns less than this (rad)."""
-    schedule: tuple[float, ...] = ()
-    """Coarse-to-fine voxel sizes (m), e.g. (0.016, 0.008); the last level uses the clouds as
-    given. The correspondence distance scales with the voxel size at coarse levels."""
+    schedule: tuple[tuple[float, float], ...] = ((0.0, 0.03), (0.0, 0.01))
+    """Levels run before the final one, coarse to fine: (voxel size m, correspondence distance
+    m). Voxel 0 uses the clouds as given. The final level is (0, max_correspondence_distance)."""
     min_points: int = 30
     """Fewer points than this in a cloud is a failure."""
     min_correspondences: int = 20
@@ -70,6 +73,22 @@ class ICPConfig:
             )
         if self.max_correspondence_distance <= 0 or self.max_iterations <= 0:
             raise InputError("max_correspondence_distance and max_iterations must be positive")
+        for level in self.schedule:
+            if len(level) != 2 or level[0] < 0 or level[1] <= 0:
+                raise InputError(
+                    f"schedule level {level!r} is not (voxel >= 0, correspondence distance > 0)"
+                )
+
+    def levels(self) -> list[tuple[float, float]]:
+        """All levels, the final one included: (voxel size, correspondence distance)."""
+        return [*self.schedule, (0.0, self.max_correspondence_distance)]
+
+    @classmethod
+    def coarse_to_fine(cls, variant: str = "point_to_plane", **overrides: Any) -> ICPConfig:
+        """A schedule for starts far from the goal (about 5 cm / 10 deg): 16 mm and 8 mm voxels
+        with a reach of three voxels, then the clouds as given at 1.2 cm and 5 mm."""
+        schedule = ((0.016, 0.048), (0.008, 0.024), (0.0, 0.012))
+        return cls(variant=variant, schedule=schedule, **overrides)
 
 
 @dataclass
@@ -87,7 +106,6 @@ class ICPResult:
     iterations: int = 0
     reason: str = ""
     """Why it failed (empty when converged)."""
-    history: list[float] = field(default_factory=list)
 
 
 def _check_cloud(cloud: Cloud, name: str, min_points: int, need_normals: bool) -> str:
@@ -108,48 +126,53 @@ def _check_cloud(cloud: Cloud, name: str, min_points: int, need_normals: bool) -
     return ""
 
 
-def _kabsch(src: NDF, dst: NDF, w: NDF | None = None) -> Array:
-    """Rigid transform minimising sum w |R src + t - dst|^2."""
-    w = np.ones(len(src)) if w is None else w
-    ws = w.sum()
-    cs = (w[:, None] * src).sum(0) / ws
-    cd = (w[:, None] * dst).sum(0) / ws
-    H = ((src - cs) * w[:, None]).T @ (dst - cd)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0)])
-    R = Vt.T @ D @ U.T
-    return make_pose(R, cd - R @ cs)
+@dataclass
+class _Level:
+    voxel: float
+    dmax: float
+    tree: NNTree
+    normals: NDF
+    """Reference normals in the tree's point order ((0, 3) when the reference has none)."""
+
+    def args(self) -> tuple[Any, ...]:
+        t = self.tree
+        return (t.points, self.normals, t.split_dim, t.split_val, t.child, t.lo, t.hi)
 
 
-def _solve6(A: NDF, b: NDF) -> NDF | None:
-    try:
-        return np.asarray(np.linalg.solve(A, b), dtype=np.float64)
-    except np.linalg.LinAlgError:
-        return None
+def _downsample(points: NDF, normals: NDF | None, voxel: float) -> tuple[NDF, NDF | None]:
+    if voxel <= 0:
+        return np.ascontiguousarray(points, dtype=np.float64), (
+            None if normals is None else np.ascontiguousarray(normals, dtype=np.float64)
+        )
+    pts, nrm = voxel_downsample(points, voxel, normals)
+    if nrm is not None:
+        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    return pts, nrm
 
 
 class ICP:
-    """Registration of current clouds to one reference cloud (both in camera frames)."""
+    """Registration of current clouds to one reference cloud (both in camera frames).
+
+    Built once per reference (its per-level downsampled copies and k-d trees);
+    `align` then runs per frame, each level in one compiled call."""
 
     def __init__(self, reference: Cloud, config: ICPConfig | None = None) -> None:
-        from scipy.spatial import KDTree
-
         self.config = config or ICPConfig()
         self.reference = reference
         need_n = self.config.variant in ("point_to_plane", "symmetric")
         self.problem = _check_cloud(reference, "reference", self.config.min_points, need_n)
-        self._levels: list[tuple[float, NDF, NDF | None, Any]] = []
+        self._levels: list[_Level] = []
         if self.problem:
             return
-        ref_n = reference.normals
-        for voxel in [*self.config.schedule, 0.0]:
-            if voxel > 0:
-                pts, nrm = voxel_downsample(reference.points, voxel, ref_n)
-                if nrm is not None:
-                    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-            else:
-                pts, nrm = reference.points, ref_n
-            self._levels.append((voxel, pts, nrm, KDTree(pts)))
+        ref_n = reference.normals  # also used by the degeneracy check of every variant
+        cache: dict[float, tuple[NNTree, NDF]] = {}
+        for voxel, dmax in self.config.levels():
+            if voxel not in cache:
+                pts, nrm = _downsample(reference.points, ref_n, voxel)
+                tree = NNTree(pts)
+                nrm = np.ascontiguousarray(nrm[tree.order]) if nrm is not None else np.zeros((0, 3))
+                cache[voxel] = (tree, nrm)
+            self._levels.append(_Level(voxel, dmax, *cache[voxel]))
 
     def align(self, current: Cloud, T_init: Any = None) -> ICPResult:
         """Estimates T_ref_cur from the current cloud, starting at T_init (identity if None)."""
@@ -163,173 +186,68 @@ class ICP:
         problem = _check_cloud(current, "current", cfg.min_points, need_n)
         if problem:
             return ICPResult(T, False, reason=problem)
-        total_iter = 0
-        result = ICPResult(T, False)
-        for voxel, ref_pts, ref_nrm, tree in self._levels:
-            if voxel > 0:
-                src, src_n = voxel_downsample(current.points, voxel, current.normals)
-                if src_n is not None:
-                    src_n = src_n / np.maximum(np.linalg.norm(src_n, axis=1, keepdims=True), 1e-12)
-                dmax = max(cfg.max_correspondence_distance, 2.0 * voxel)
-            else:
-                src, src_n, dmax = current.points, current.normals, cfg.max_correspondence_distance
-            result = self._level(T, src, src_n, ref_pts, ref_nrm, tree, dmax)
-            total_iter += result.iterations
-            T = result.T_ref_cur
-            if result.reason and voxel == 0:
+        code = K.VARIANT_CODES[cfg.variant]
+        total = 0
+        status, pairs, rmse = K.ITERATION_LIMIT, 0, float("nan")
+        src_cache: dict[float, tuple[NDF, NDF]] = {}
+        cur_n = current.normals if need_n else None
+        for lv in self._levels:
+            if lv.voxel not in src_cache:
+                s, sn = _downsample(current.points, cur_n, lv.voxel)
+                src_cache[lv.voxel] = (s, sn if sn is not None else np.zeros((0, 3)))
+            src, src_n = src_cache[lv.voxel]
+            T, status, it, pairs, rmse = K.register_level(
+                src, src_n, *lv.args(), T, lv.dmax, code, cfg.max_iterations, cfg.tolerance_translation,
+                cfg.tolerance_rotation, cfg.min_correspondences, cfg.huber_delta,
+            )  # fmt: skip
+            total += it
+            if status in (K.FEW_PAIRS, K.SINGULAR):
                 break
-        result.iterations = total_iter
-        if not result.reason:
-            degenerate = self._degeneracy(result.T_ref_cur, current.points)
+        lv = self._levels[-1]
+        src = current.points
+        t = lv.tree
+        q, idx, d2 = K.associate(
+            src, T, t.points, t.split_dim, t.split_val, t.child, t.lo, t.hi, lv.dmax
+        )
+        ok = idx >= 0
+        n_ok = int(ok.sum())
+        result = ICPResult(
+            T,
+            status == K.CONVERGED,
+            fitness=n_ok / len(src),
+            inlier_rmse=float(np.sqrt(d2[ok].mean())) if n_ok else float("nan"),
+            correspondences=n_ok,
+            iterations=total,
+        )
+        if status == K.FEW_PAIRS:
+            result.reason = f"too few correspondences ({pairs} < {cfg.min_correspondences}) within {lv.dmax:.4f} m"
+        elif status == K.SINGULAR:
+            result.reason = "degenerate geometry: singular linear system (the cloud does not constrain all six degrees of freedom)"
+        elif status == K.ITERATION_LIMIT:
+            result.reason = f"did not converge in {cfg.max_iterations} iterations"
+        if result.converged and n_ok < cfg.min_correspondences:
+            result.converged = False
+            result.reason = f"too few correspondences ({n_ok} < {cfg.min_correspondences}) within {lv.dmax:.4f} m"
+        if result.converged:
+            degenerate = self._degeneracy(q[ok], idx[ok])
             if degenerate:
                 result.converged = False
                 result.reason = degenerate
         return result
 
-    # ---------------------------------------------------------------- one level
-    def _level(
-        self,
-        T: Array,
-        src: NDF,
-        src_n: NDF | None,
-        ref: NDF,
-        ref_n: NDF | None,
-        tree: Any,
-        dmax: float,
-    ) -> ICPResult:
+    def _degeneracy(self, q: NDF, idx: Any) -> str:
+        """Checks the final alignment constrains all six degrees of freedom (point-to-plane
+        Hessian of the final pairs, with the reference normals; without normals, those of a
+        local fit are not available, so variants without normals are not checked)."""
         cfg = self.config
-        mu = 1e-3  # LM damping
-        hist: list[float] = []
-        converged = False
-        it = 0
-        for it in range(1, cfg.max_iterations + 1):
-            q = src @ T[:3, :3].T + T[:3, 3]
-            d, j = tree.query(q, distance_upper_bound=dmax)
-            ok = np.isfinite(d)
-            if ok.sum() < cfg.min_correspondences:
-                return ICPResult(
-                    T,
-                    False,
-                    float(ok.mean()),
-                    float("nan"),
-                    int(ok.sum()),
-                    it,
-                    f"too few correspondences ({int(ok.sum())} < {cfg.min_correspondences}) within {dmax:.4f} m",
-                    hist,
-                )
-            qi, yi = q[ok], ref[j[ok]]
-            hist.append(float(np.sqrt(np.mean(d[ok] ** 2))))
-            if cfg.variant == "point_to_point":
-                dT = _kabsch(qi, yi)
-            elif cfg.variant == "lm":
-                dT, mu = self._lm_step(qi, yi, mu, tree, ref, dmax)
-            elif cfg.variant == "point_to_plane":
-                assert ref_n is not None
-                dT = self._plane_step(qi, yi, ref_n[j[ok]])
-            else:
-                assert ref_n is not None and src_n is not None
-                dT = self._symmetric_step(qi, yi, src_n[ok] @ T[:3, :3].T, ref_n[j[ok]])
-            if dT is None:
-                return ICPResult(
-                    T,
-                    False,
-                    float(ok.mean()),
-                    hist[-1],
-                    int(ok.sum()),
-                    it,
-                    "degenerate geometry: singular linear system (the cloud does not constrain all six degrees of freedom)",
-                    hist,
-                )
-            T = dT @ T
-            step_t = float(np.linalg.norm(dT[:3, 3]))
-            step_r = float(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1) / 2, -1, 1)))
-            if step_t < cfg.tolerance_translation and step_r < cfg.tolerance_rotation:
-                converged = True
-                break
-        q = src @ T[:3, :3].T + T[:3, 3]
-        d, _ = tree.query(q, distance_upper_bound=dmax)
-        ok = np.isfinite(d)
-        rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("nan")
-        reason = "" if converged else f"did not converge in {cfg.max_iterations} iterations"
-        return ICPResult(T, converged, float(ok.mean()), rmse, int(ok.sum()), it, reason, hist)
-
-    @staticmethod
-    def _plane_step(q: NDF, y: NDF, n: NDF) -> Array | None:
-        r = np.einsum("ij,ij->i", q - y, n)
-        J = np.hstack([n, np.cross(q, n)])  # d r / d(t, w) for q' = q + w x q + t
-        x = _solve6(J.T @ J, -J.T @ r)
-        if x is None:
-            return None
-        return make_pose(so3_exp(x[3:]), x[:3])
-
-    @staticmethod
-    def _symmetric_step(p: NDF, q: NDF, n_p: NDF, n_q: NDF) -> Array | None:
-        n = n_p + n_q
-        r = np.einsum("ij,ij->i", p - q, n)
-        J = np.hstack([n, np.cross(p + q, n)])
-        x = _solve6(J.T @ J, -J.T @ r)
-        if x is None:
-            return None
-        t_tilde, a_tilde = x[:3], x[3:]
-        a_norm = float(np.linalg.norm(a_tilde))
-        theta = float(np.arctan(a_norm))
-        half = so3_exp(a_tilde / a_norm * theta) if a_norm > 1e-15 else np.eye(3)
-        # R p - R^-1 q + t = 0  ->  the full step is R_half * Trans(t cos(theta)) * R_half
-        return make_pose(half) @ make_pose(np.eye(3), t_tilde * np.cos(theta)) @ make_pose(half)
-
-    def _lm_step(
-        self, q: NDF, y: NDF, mu: float, tree: Any, ref: NDF, dmax: float
-    ) -> tuple[Array, float]:
-        cfg = self.config
-        r = q - y  # (N, 3)
-        w = np.ones(len(q))
-        if cfg.huber_delta > 0:
-            nr = np.linalg.norm(r, axis=1)
-            w = np.where(nr <= cfg.huber_delta, 1.0, cfg.huber_delta / np.maximum(nr, 1e-15))
-        # J_i = [I, -[q_i]x] for q' = q + w x q + t; normal equations summed over points
-        A = np.zeros((6, 6))
-        g = np.zeros(6)
-        sw = w.sum()
-        qx = q * w[:, None]
-        A[:3, :3] = sw * np.eye(3)
-        S = qx.sum(0)
-        A[:3, 3:] = -skew(S)
-        A[3:, :3] = skew(S)
-        qq = (q * qx).sum()  # sum w |q|^2
-        A[3:, 3:] = qq * np.eye(3) - (q.T * w) @ q
-        g[:3] = (r * w[:, None]).sum(0)
-        g[3:] = (np.cross(q, r) * w[:, None]).sum(0)
-        cost0 = float((w * (r**2).sum(1)).sum())
-        for _ in range(10):
-            x = _solve6(A + mu * np.diag(np.diag(A)), -g)
-            if x is None:
-                mu *= 10
-                continue
-            dT = make_pose(so3_exp(x[3:]), x[:3])
-            qn = q @ dT[:3, :3].T + dT[:3, 3]
-            rn = qn - y
-            cost = float((w * (rn**2).sum(1)).sum())
-            if cost < cost0:
-                return dT, max(mu / 10, 1e-9)
-            mu *= 10
-        return np.eye(4), mu
-
-    def _degeneracy(self, T: Array, src: NDF) -> str:
-        """Checks the final alignment constrains all six degrees of freedom."""
-        cfg = self.config
-        _, _ref_pts, ref_n, tree = self._levels[-1]
-        if ref_n is None:
+        lv = self._levels[-1]
+        if len(lv.normals) == 0 or len(q) < cfg.min_correspondences:
             return ""
-        q = src @ T[:3, :3].T + T[:3, 3]
-        d, j = tree.query(q, distance_upper_bound=cfg.max_correspondence_distance)
-        ok = np.isfinite(d)
-        if ok.sum() < cfg.min_correspondences:
-            return ""
-        qi, n = q[ok], ref_n[j[ok]]
-        c = qi.mean(0)
-        scale = float(np.sqrt(((qi - c) ** 2).sum(1).mean())) or 1.0
+        n = lv.normals[idx]
+        c = q.mean(0)
+        scale = float(np.sqrt(((q - c) ** 2).sum(1).mean())) or 1.0
         # point-to-plane Hessian about the cloud centre, rotations scaled to metres
-        J = np.hstack([n, np.cross(qi - c, n) / scale])
+        J = np.hstack([n, np.cross(q - c, n) / scale])
         ev = np.linalg.eigvalsh(J.T @ J)
         if ev[0] < cfg.degeneracy_ratio * ev[-1]:
             return (

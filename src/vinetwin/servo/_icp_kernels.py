@@ -1,0 +1,463 @@
+"""Compiled ICP (numba): the reference's k-d tree and one whole registration level.
+
+The reference never changes during a servo, so its k-d tree (flat arrays, median splits, leaves
+of 8 points) is built once; a query gives the exact closest reference point within the
+correspondence distance. A level runs entirely in compiled code: association, the variant's linear system,
+the 6x6 solve (or the 3x3 SVD of point-to-point) and the convergence test, so a frame costs one
+Python call per level.
+
+Variant codes: 0 point-to-point, 1 Levenberg-Marquardt, 2 point-to-plane, 3 symmetric.
+Status codes: 0 converged, 1 iteration limit, 2 too few correspondences, 3 singular system.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+VARIANT_CODES = {"point_to_point": 0, "lm": 1, "point_to_plane": 2, "symmetric": 3}
+CONVERGED, ITERATION_LIMIT, FEW_PAIRS, SINGULAR = 0, 1, 2, 3
+
+
+LEAF_SIZE = 8
+
+
+class NNTree:
+    """The reference points in a k-d tree (flat arrays, built once), for exact closest-point
+    queries within a distance. `points` are the input points reordered; `order` maps back."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        order, split_dim, split_val, child, lo, hi = _build_tree(pts, LEAF_SIZE)
+        self.order = order
+        self.points = np.ascontiguousarray(pts[order])
+        self.split_dim = split_dim
+        self.split_val = split_val
+        self.child = child
+        self.lo = lo
+        self.hi = hi
+
+
+@nb.njit(cache=True)
+def _build_tree(
+    pts: np.ndarray, leaf: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Median split on the widest axis until a node holds at most `leaf` points. Node arrays:
+    split dimension (-1 for a leaf), split value, first child (the second is child + 1), and
+    the leaf's range [lo, hi) in `order`."""
+    n = pts.shape[0]
+    cap = 2 * (n // max(leaf // 2, 1) + 1) + 1
+    order = np.arange(n)
+    split_dim = np.full(cap, -1, np.int64)
+    split_val = np.zeros(cap)
+    child = np.full(cap, -1, np.int64)
+    lo = np.zeros(cap, np.int64)
+    hi = np.zeros(cap, np.int64)
+    stack = np.empty(cap, np.int64)
+    lo[0], hi[0] = 0, n
+    count = 1
+    top = 0
+    stack[0] = 0
+    while top >= 0:
+        node = stack[top]
+        top -= 1
+        a, b = lo[node], hi[node]
+        if b - a <= leaf:
+            continue
+        idx = order[a:b]
+        sub = pts[idx]
+        ext = np.empty(3)
+        for d in range(3):
+            ext[d] = sub[:, d].max() - sub[:, d].min()
+        d = int(np.argmax(ext))
+        srt = np.argsort(sub[:, d])
+        order[a:b] = idx[srt]
+        mid = a + (b - a) // 2
+        split_dim[node] = d
+        split_val[node] = pts[order[mid], d]
+        child[node] = count
+        lo[count], hi[count] = a, mid
+        lo[count + 1], hi[count + 1] = mid, b
+        top += 1
+        stack[top] = count
+        top += 1
+        stack[top] = count + 1
+        count += 2
+    return (
+        order,
+        split_dim[:count].copy(),
+        split_val[:count].copy(),
+        child[:count].copy(),
+        lo[:count].copy(),
+        hi[:count].copy(),
+    )
+
+
+@nb.njit(cache=True, nogil=True)
+def _nearest(
+    q: np.ndarray,
+    pts: np.ndarray,
+    split_dim: np.ndarray,
+    split_val: np.ndarray,
+    child: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    dmax: float,
+    stack: np.ndarray,
+    bound: np.ndarray,
+) -> tuple[int, float]:
+    """Index (into the tree's points) and squared distance of the closest point within dmax;
+    (-1, inf) when none."""
+    best = -1
+    best_d2 = dmax * dmax
+    top = 0
+    stack[0] = 0
+    bound[0] = 0.0
+    while top >= 0:
+        node = stack[top]
+        if bound[top] > best_d2:
+            top -= 1
+            continue
+        top -= 1
+        d = split_dim[node]
+        if d < 0:
+            for m in range(lo[node], hi[node]):
+                dx = pts[m, 0] - q[0]
+                dy = pts[m, 1] - q[1]
+                dz = pts[m, 2] - q[2]
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 <= best_d2:
+                    best_d2 = d2
+                    best = m
+            continue
+        diff = q[d] - split_val[node]
+        near = child[node] if diff < 0 else child[node] + 1
+        far = child[node] + 1 if diff < 0 else child[node]
+        # push the far side first so the near side is searched first
+        top += 1
+        stack[top] = far
+        bound[top] = diff * diff
+        top += 1
+        stack[top] = near
+        bound[top] = 0.0
+    if best < 0:
+        return -1, np.inf
+    return best, best_d2
+
+
+@nb.njit(cache=True, nogil=True)
+def associate(
+    src: np.ndarray,
+    T: np.ndarray,
+    pts: np.ndarray,
+    split_dim: np.ndarray,
+    split_val: np.ndarray,
+    child: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    dmax: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Transforms src by T and finds each point's closest reference point within dmax.
+    Returns (transformed points, sorted-reference index or -1, squared distance or inf)."""
+    n = src.shape[0]
+    q = np.empty((n, 3))
+    idx = np.empty(n, np.int64)
+    d2 = np.empty(n)
+    stack = np.empty(128, np.int64)
+    bound = np.empty(128)
+    for i in range(n):
+        for a in range(3):
+            q[i, a] = T[a, 0] * src[i, 0] + T[a, 1] * src[i, 1] + T[a, 2] * src[i, 2] + T[a, 3]
+        idx[i], d2[i] = _nearest(q[i], pts, split_dim, split_val, child, lo, hi, dmax, stack, bound)
+    return q, idx, d2
+
+
+@nb.njit(cache=True, nogil=True)
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    th = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    R = np.eye(3)
+    if th < 1e-15:
+        R[0, 1] = -w[2]
+        R[0, 2] = w[1]
+        R[1, 0] = w[2]
+        R[1, 2] = -w[0]
+        R[2, 0] = -w[1]
+        R[2, 1] = w[0]
+        return R
+    k = w / th
+    K = np.zeros((3, 3))
+    K[0, 1] = -k[2]
+    K[0, 2] = k[1]
+    K[1, 0] = k[2]
+    K[1, 2] = -k[0]
+    K[2, 0] = -k[1]
+    K[2, 1] = k[0]
+    return R + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
+
+
+@nb.njit(cache=True, nogil=True)
+def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+@nb.njit(cache=True, nogil=True)
+def _kabsch_step(q: np.ndarray, y: np.ndarray, idx: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    m = sel.shape[0]
+    cq = np.zeros(3)
+    cy = np.zeros(3)
+    for s in range(m):
+        i = sel[s]
+        cq += q[i]
+        cy += y[idx[i]]
+    cq /= m
+    cy /= m
+    H = np.zeros((3, 3))
+    for s in range(m):
+        i = sel[s]
+        a = q[i] - cq
+        b = y[idx[i]] - cy
+        for r in range(3):
+            for c in range(3):
+                H[r, c] += a[r] * b[c]
+    U, _, Vt = np.linalg.svd(H)
+    D = np.eye(3)
+    if np.linalg.det(Vt.T @ U.T) < 0:
+        D[2, 2] = -1.0
+    R = Vt.T @ D @ U.T
+    return _pose(R, cy - R @ cq)
+
+
+@nb.njit(cache=True, nogil=True)
+def _normal_eq(
+    q: np.ndarray,
+    y: np.ndarray,
+    ny: np.ndarray,
+    nq: np.ndarray,
+    idx: np.ndarray,
+    sel: np.ndarray,
+    symmetric: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """J^T J and J^T r of the point-to-plane (or symmetric) residuals over the pairs `sel`."""
+    A = np.zeros((6, 6))
+    b = np.zeros(6)
+    J = np.empty(6)
+    for s in range(sel.shape[0]):
+        i = sel[s]
+        j = idx[i]
+        if symmetric:
+            n0 = nq[i, 0] + ny[j, 0]
+            n1 = nq[i, 1] + ny[j, 1]
+            n2 = nq[i, 2] + ny[j, 2]
+            p0 = q[i, 0] + y[j, 0]
+            p1 = q[i, 1] + y[j, 1]
+            p2 = q[i, 2] + y[j, 2]
+        else:
+            n0 = ny[j, 0]
+            n1 = ny[j, 1]
+            n2 = ny[j, 2]
+            p0 = q[i, 0]
+            p1 = q[i, 1]
+            p2 = q[i, 2]
+        r = (q[i, 0] - y[j, 0]) * n0 + (q[i, 1] - y[j, 1]) * n1 + (q[i, 2] - y[j, 2]) * n2
+        J[0] = n0
+        J[1] = n1
+        J[2] = n2
+        J[3] = p1 * n2 - p2 * n1
+        J[4] = p2 * n0 - p0 * n2
+        J[5] = p0 * n1 - p1 * n0
+        for a in range(6):
+            b[a] += J[a] * r
+            for c in range(a, 6):
+                A[a, c] += J[a] * J[c]
+    for a in range(6):
+        for c in range(a):
+            A[a, c] = A[c, a]
+    return A, b
+
+
+@nb.njit(cache=True, nogil=True)
+def _lm_cost(
+    q: np.ndarray, y: np.ndarray, idx: np.ndarray, sel: np.ndarray, dT: np.ndarray, huber: float
+) -> float:
+    cost = 0.0
+    for s in range(sel.shape[0]):
+        i = sel[s]
+        j = idx[i]
+        e2 = 0.0
+        for a in range(3):
+            v = dT[a, 0] * q[i, 0] + dT[a, 1] * q[i, 1] + dT[a, 2] * q[i, 2] + dT[a, 3] - y[j, a]
+            e2 += v * v
+        if huber > 0 and e2 > huber * huber:
+            cost += 2.0 * huber * math.sqrt(e2) - huber * huber
+        else:
+            cost += e2
+    return cost
+
+
+@nb.njit(cache=True, nogil=True)
+def _lm_step(
+    q: np.ndarray, y: np.ndarray, idx: np.ndarray, sel: np.ndarray, mu: float, huber: float
+) -> tuple[np.ndarray, float]:
+    """One Levenberg-Marquardt step on the point-to-point residuals of fixed pairs (IRLS weights
+    for the Huber kernel). Returns the accepted step (identity if none lowers the cost) and the
+    new damping."""
+    A = np.zeros((6, 6))
+    g = np.zeros(6)
+    for s in range(sel.shape[0]):
+        i = sel[s]
+        j = idx[i]
+        r0 = q[i, 0] - y[j, 0]
+        r1 = q[i, 1] - y[j, 1]
+        r2 = q[i, 2] - y[j, 2]
+        w = 1.0
+        if huber > 0:
+            nr = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+            if nr > huber:
+                w = huber / nr
+        x0, x1, x2 = q[i, 0], q[i, 1], q[i, 2]
+        # J = [I, -[x]x] for x' = x + w x x + t
+        A[0, 0] += w
+        A[1, 1] += w
+        A[2, 2] += w
+        A[0, 4] += w * x2
+        A[0, 5] -= w * x1
+        A[1, 3] -= w * x2
+        A[1, 5] += w * x0
+        A[2, 3] += w * x1
+        A[2, 4] -= w * x0
+        A[3, 3] += w * (x1 * x1 + x2 * x2)
+        A[4, 4] += w * (x0 * x0 + x2 * x2)
+        A[5, 5] += w * (x0 * x0 + x1 * x1)
+        A[3, 4] -= w * x0 * x1
+        A[3, 5] -= w * x0 * x2
+        A[4, 5] -= w * x1 * x2
+        g[0] += w * r0
+        g[1] += w * r1
+        g[2] += w * r2
+        g[3] += w * (x1 * r2 - x2 * r1)
+        g[4] += w * (x2 * r0 - x0 * r2)
+        g[5] += w * (x0 * r1 - x1 * r0)
+    for a in range(6):
+        for c in range(a):
+            A[a, c] = A[c, a]
+    cost0 = _lm_cost(q, y, idx, sel, np.eye(4), huber)
+    for _ in range(12):
+        M = A.copy()
+        for a in range(6):
+            M[a, a] += mu * A[a, a]
+        if abs(np.linalg.det(M)) < 1e-300:
+            mu *= 10.0
+            continue
+        x = np.linalg.solve(M, -g)
+        dT = _pose(_rodrigues(x[3:]), x[:3])
+        if _lm_cost(q, y, idx, sel, dT, huber) < cost0:
+            return dT, max(mu / 10.0, 1e-9)
+        mu *= 10.0
+    return np.eye(4), mu
+
+
+@nb.njit(cache=True, nogil=True)
+def _symmetric_pose(x: np.ndarray) -> np.ndarray:
+    """Rusinkiewicz's step: R_half * Trans(t cos(theta)) * R_half, theta = atan(|a|)."""
+    a = x[3:]
+    an = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    if an > 1e-15:
+        th = math.atan(an)
+        half = _rodrigues(a / an * th)
+        c = math.cos(th)
+    else:
+        half = np.eye(3)
+        c = 1.0
+    H = _pose(half, np.zeros(3))
+    return H @ _pose(np.eye(3), x[:3] * c) @ H
+
+
+@nb.njit(cache=True, nogil=True)
+def _well_posed(A: np.ndarray) -> bool:
+    d = 0.0
+    for a in range(6):
+        d = max(d, A[a, a])
+    if not d > 0:
+        return False
+    # relative determinant test on the scaled system
+    s = np.empty(6)
+    for a in range(6):
+        s[a] = 1.0 / math.sqrt(A[a, a]) if A[a, a] > 0 else 0.0
+    for a in range(6):
+        if s[a] == 0.0:
+            return False
+    M = A * np.outer(s, s)
+    return abs(np.linalg.det(M)) > 1e-14
+
+
+@nb.njit(cache=True, nogil=True)
+def register_level(
+    src: np.ndarray,
+    src_n: np.ndarray,
+    pts: np.ndarray,
+    nrm: np.ndarray,
+    split_dim: np.ndarray,
+    split_val: np.ndarray,
+    child: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    T0: np.ndarray,
+    dmax: float,
+    variant: int,
+    max_iter: int,
+    tol_t: float,
+    tol_r: float,
+    min_pairs: int,
+    huber: float,
+) -> tuple[np.ndarray, int, int, int, float]:
+    """One level of ICP from T0. Returns (T, status, iterations, pairs, rmse of the last
+    association)."""
+    T = T0.copy()
+    mu = 1e-3
+    it = 0
+    npairs = 0
+    rmse = np.nan
+    for it in range(1, max_iter + 1):
+        q, idx, d2 = associate(src, T, pts, split_dim, split_val, child, lo, hi, dmax)
+        sel = np.nonzero(idx >= 0)[0]
+        npairs = sel.shape[0]
+        if npairs < min_pairs:
+            return T, FEW_PAIRS, it, npairs, rmse
+        acc = 0.0
+        for s in range(npairs):
+            acc += d2[sel[s]]
+        rmse = math.sqrt(acc / npairs)
+        if variant == 0:
+            dT = _kabsch_step(q, pts, idx, sel)
+        elif variant == 1:
+            dT, mu = _lm_step(q, pts, idx, sel, mu, huber)
+        else:
+            if variant == 3:
+                nq = np.empty_like(src_n)
+                for i in range(src_n.shape[0]):
+                    for a in range(3):
+                        nq[i, a] = (
+                            T[a, 0] * src_n[i, 0] + T[a, 1] * src_n[i, 1] + T[a, 2] * src_n[i, 2]
+                        )
+            else:
+                nq = src_n
+            A, b = _normal_eq(q, pts, nrm, nq, idx, sel, variant == 3)
+            if not _well_posed(A):
+                return T, SINGULAR, it, npairs, rmse
+            x = np.linalg.solve(A, -b)
+            if variant == 2:
+                dT = _pose(_rodrigues(x[3:]), x[:3])
+            else:
+                dT = _symmetric_pose(x)
+        T = dT @ T
+        st = math.sqrt(dT[0, 3] ** 2 + dT[1, 3] ** 2 + dT[2, 3] ** 2)
+        c = (dT[0, 0] + dT[1, 1] + dT[2, 2] - 1.0) / 2.0
+        sr = math.acos(min(1.0, max(-1.0, c)))
+        if st < tol_t and sr < tol_r:
+            return T, CONVERGED, it, npairs, rmse
+    return T, ITERATION_LIMIT, it, npairs, rmse
