@@ -188,7 +188,7 @@ class ICP:
             return ICPResult(T, False, reason=problem)
         code = K.VARIANT_CODES[cfg.variant]
         total = 0
-        status, pairs, rmse = K.ITERATION_LIMIT, 0, float("nan")
+        status, pairs = K.ITERATION_LIMIT, 0
         src_cache: dict[float, tuple[NDF, NDF]] = {}
         cur_n = current.normals if need_n else None
         for lv in self._levels:
@@ -196,7 +196,7 @@ class ICP:
                 s, sn = _downsample(current.points, cur_n, lv.voxel)
                 src_cache[lv.voxel] = (s, sn if sn is not None else np.zeros((0, 3)))
             src, src_n = src_cache[lv.voxel]
-            T, status, it, pairs, rmse = K.register_level(
+            T, status, it, pairs, _ = K.register_level(
                 src, src_n, *lv.args(), T, lv.dmax, code, cfg.max_iterations, cfg.tolerance_translation,
                 cfg.tolerance_rotation, cfg.min_correspondences, cfg.huber_delta,
             )  # fmt: skip
