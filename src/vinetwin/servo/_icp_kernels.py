@@ -17,6 +17,10 @@ import math
 import numba as nb
 import numpy as np
 
+# numba's OpenMP layer shares libgomp with Open3D; the workqueue layer needs nothing installed
+# (TBB, when present, is often too old for numba and only warns)
+nb.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
 VARIANT_CODES = {"point_to_point": 0, "lm": 1, "point_to_plane": 2, "symmetric": 3}
 CONVERGED, ITERATION_LIMIT, FEW_PAIRS, SINGULAR = 0, 1, 2, 3
 
@@ -148,6 +152,31 @@ def _nearest(
 
 
 @nb.njit(cache=True, nogil=True)
+def _associate_range(
+    src: np.ndarray,
+    T: np.ndarray,
+    pts: np.ndarray,
+    split_dim: np.ndarray,
+    split_val: np.ndarray,
+    child: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    dmax: float,
+    i0: int,
+    i1: int,
+    q: np.ndarray,
+    idx: np.ndarray,
+    d2: np.ndarray,
+) -> None:
+    stack = np.empty(128, np.int64)
+    bound = np.empty(128)
+    for i in range(i0, i1):
+        for a in range(3):
+            q[i, a] = T[a, 0] * src[i, 0] + T[a, 1] * src[i, 1] + T[a, 2] * src[i, 2] + T[a, 3]
+        idx[i], d2[i] = _nearest(q[i], pts, split_dim, split_val, child, lo, hi, dmax, stack, bound)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
 def associate(
     src: np.ndarray,
     T: np.ndarray,
@@ -158,19 +187,22 @@ def associate(
     lo: np.ndarray,
     hi: np.ndarray,
     dmax: float,
+    threads: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transforms src by T and finds each point's closest reference point within dmax.
-    Returns (transformed points, sorted-reference index or -1, squared distance or inf)."""
+    Returns (transformed points, tree-order reference index or -1, squared distance or inf).
+    Split in one chunk per thread above 256 points."""
     n = src.shape[0]
     q = np.empty((n, 3))
     idx = np.empty(n, np.int64)
     d2 = np.empty(n)
-    stack = np.empty(128, np.int64)
-    bound = np.empty(128)
-    for i in range(n):
-        for a in range(3):
-            q[i, a] = T[a, 0] * src[i, 0] + T[a, 1] * src[i, 1] + T[a, 2] * src[i, 2] + T[a, 3]
-        idx[i], d2[i] = _nearest(q[i], pts, split_dim, split_val, child, lo, hi, dmax, stack, bound)
+    chunks = max(threads, 1) if n > 256 else 1
+    size = (n + chunks - 1) // chunks
+    for c in nb.prange(chunks):
+        _associate_range(
+            src, T, pts, split_dim, split_val, child, lo, hi, dmax,
+            c * size, min(n, (c + 1) * size), q, idx, d2,
+        )  # fmt: skip
     return q, idx, d2
 
 
@@ -207,23 +239,25 @@ def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 @nb.njit(cache=True, nogil=True)
 def _kabsch_step(q: np.ndarray, y: np.ndarray, idx: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """Closed-form rigid step (SVD of the cross-covariance) moving q[sel] onto y[idx[sel]]."""
     m = sel.shape[0]
     cq = np.zeros(3)
     cy = np.zeros(3)
-    for s in range(m):
-        i = sel[s]
-        cq += q[i]
-        cy += y[idx[i]]
-    cq /= m
-    cy /= m
     H = np.zeros((3, 3))
     for s in range(m):
         i = sel[s]
-        a = q[i] - cq
-        b = y[idx[i]] - cy
-        for r in range(3):
+        j = idx[i]
+        for a in range(3):
+            cq[a] += q[i, a]
+            cy[a] += y[j, a]
             for c in range(3):
-                H[r, c] += a[r] * b[c]
+                H[a, c] += q[i, a] * y[j, c]
+    for a in range(3):
+        cq[a] /= m
+        cy[a] /= m
+    for a in range(3):
+        for c in range(3):
+            H[a, c] -= m * cq[a] * cy[c]
     U, _, Vt = np.linalg.svd(H)
     D = np.eye(3)
     if np.linalg.det(Vt.T @ U.T) < 0:
@@ -395,7 +429,7 @@ def _well_posed(A: np.ndarray) -> bool:
     return abs(np.linalg.det(M)) > 1e-14
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def register_level(
     src: np.ndarray,
     src_n: np.ndarray,
@@ -406,6 +440,7 @@ def register_level(
     child: np.ndarray,
     lo: np.ndarray,
     hi: np.ndarray,
+    use: np.ndarray,
     T0: np.ndarray,
     dmax: float,
     variant: int,
@@ -414,16 +449,32 @@ def register_level(
     tol_r: float,
     min_pairs: int,
     huber: float,
+    threads: int,
 ) -> tuple[np.ndarray, int, int, int, float]:
     """One level of ICP from T0. Returns (T, status, iterations, pairs, rmse of the last
     association)."""
     T = T0.copy()
+    n = src.shape[0]
+    q = np.empty((n, 3))
+    idx = np.empty(n, np.int64)
+    d2 = np.empty(n)
+    chunks = max(threads, 1) if n > 256 else 1
+    size = (n + chunks - 1) // chunks
+    hist = np.zeros((4, 4, 4))
+    hist[0] = T
     mu = 1e-3
     it = 0
     npairs = 0
     rmse = np.nan
     for it in range(1, max_iter + 1):
-        q, idx, d2 = associate(src, T, pts, split_dim, split_val, child, lo, hi, dmax)
+        for c in nb.prange(chunks):
+            _associate_range(
+                src, T, pts, split_dim, split_val, child, lo, hi, dmax,
+                c * size, min(n, (c + 1) * size), q, idx, d2,
+            )  # fmt: skip
+        for i in range(idx.shape[0]):
+            if idx[i] >= 0 and not use[idx[i]]:
+                idx[i] = -1
         sel = np.nonzero(idx >= 0)[0]
         npairs = sel.shape[0]
         if npairs < min_pairs:
@@ -455,9 +506,20 @@ def register_level(
             else:
                 dT = _symmetric_pose(x)
         T = dT @ T
-        st = math.sqrt(dT[0, 3] ** 2 + dT[1, 3] ** 2 + dT[2, 3] ** 2)
-        c = (dT[0, 0] + dT[1, 1] + dT[2, 2] - 1.0) / 2.0
-        sr = math.acos(min(1.0, max(-1.0, c)))
-        if st < tol_t and sr < tol_r:
+        if _small(dT, tol_t, tol_r):
             return T, CONVERGED, it, npairs, rmse
+        # a hard reach can make the pair set flip between two or three states: a limit cycle
+        # whose poses agree within the tolerance is a fixed point too
+        for back in range(2, 4):
+            if it > back and _small(np.linalg.solve(hist[(it - back) % 4], T), tol_t, tol_r):
+                return T, CONVERGED, it, npairs, rmse
+        hist[it % 4] = T
     return T, ITERATION_LIMIT, it, npairs, rmse
+
+
+@nb.njit(cache=True, nogil=True)
+def _small(dT: np.ndarray, tol_t: float, tol_r: float) -> bool:
+    st = math.sqrt(dT[0, 3] ** 2 + dT[1, 3] ** 2 + dT[2, 3] ** 2)
+    c = (dT[0, 0] + dT[1, 1] + dT[2, 2] - 1.0) / 2.0
+    sr = math.acos(min(1.0, max(-1.0, c)))
+    return st < tol_t and sr < tol_r

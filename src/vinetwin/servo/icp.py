@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from vinetwin.camera import CameraModel
 from vinetwin.cloud import ICP_VARIANTS, Cloud, voxel_downsample
 from vinetwin.errors import InputError
 from vinetwin.frames import Array
@@ -49,13 +50,19 @@ class ICPConfig:
     """Pairs farther apart than this (m) are rejected at the final level."""
     max_iterations: int = 40
     """Iterations per level."""
-    tolerance_translation: float = 1e-6
+    tolerance_translation: float = 1e-5
     """Convergence when an update moves less than this (m)..."""
-    tolerance_rotation: float = 1e-6
+    tolerance_rotation: float = 1e-5
     """...and turns less than this (rad)."""
     schedule: tuple[tuple[float, float], ...] = ((0.0, 0.03), (0.0, 0.01))
     """Levels run before the final one, coarse to fine: (voxel size m, correspondence distance
     m). Voxel 0 uses the clouds as given. The final level is (0, max_correspondence_distance)."""
+    coarse_tolerance: float = 0.01
+    """Levels before the final one converge when an update moves less than this fraction of
+    their reach (and turns less than that distance at a 10 cm lever arm)."""
+    edge_reach: float = 0.01
+    """With the reference's camera given to ICP: pairs whose reference point lies within
+    min(this, the level's reach) of the edge of the reference view are rejected (m)."""
     min_points: int = 30
     """Fewer points than this in a cloud is a failure."""
     min_correspondences: int = 20
@@ -133,10 +140,38 @@ class _Level:
     tree: NNTree
     normals: NDF
     """Reference normals in the tree's point order ((0, 3) when the reference has none)."""
+    use: npt.NDArray[np.bool_]
+    """False for reference points at the edge of the reference view (tree order)."""
 
     def args(self) -> tuple[Any, ...]:
         t = self.tree
-        return (t.points, self.normals, t.split_dim, t.split_val, t.child, t.lo, t.hi)
+        return (t.points, self.normals, t.split_dim, t.split_val, t.child, t.lo, t.hi, self.use)
+
+
+def view_edge_mask(
+    points: NDF, camera: CameraModel, reach: float, max_depth: float = np.inf
+) -> npt.NDArray[np.bool_]:
+    """True for points within `reach` (m) of the edge of the camera's view: the image border or
+    the far depth limit. A current point beyond the reference's view would pair with these
+    (Turk & Levoy's boundary rule), dragging the estimate along the cane it lies on."""
+    z = np.maximum(points[:, 2], 1e-9)
+    u = camera.fx * points[:, 0] / z + camera.cx
+    v = camera.fy * points[:, 1] / z + camera.cy
+    mu = reach * camera.fx / z
+    mv = reach * camera.fy / z
+    return (
+        (u < mu - 0.5)
+        | (u > camera.width - 0.5 - mu)
+        | (v < mv - 0.5)
+        | (v > camera.height - 0.5 - mv)
+        | (points[:, 2] > max_depth - reach)
+    )
+
+
+def _threads() -> int:
+    import numba
+
+    return int(numba.get_num_threads())
 
 
 def _downsample(points: NDF, normals: NDF | None, voxel: float) -> tuple[NDF, NDF | None]:
@@ -156,7 +191,17 @@ class ICP:
     Built once per reference (its per-level downsampled copies and k-d trees);
     `align` then runs per frame, each level in one compiled call."""
 
-    def __init__(self, reference: Cloud, config: ICPConfig | None = None) -> None:
+    def __init__(
+        self,
+        reference: Cloud,
+        config: ICPConfig | None = None,
+        *,
+        camera: CameraModel | None = None,
+        max_depth: float = np.inf,
+    ) -> None:
+        """`camera` and `max_depth` describe the reference's view (the twin's camera and its
+        perception's max_depth); with them, pairs that land within a level's reach of the edge
+        of that view are rejected."""
         self.config = config or ICPConfig()
         self.reference = reference
         need_n = self.config.variant in ("point_to_plane", "symmetric")
@@ -172,7 +217,13 @@ class ICP:
                 tree = NNTree(pts)
                 nrm = np.ascontiguousarray(nrm[tree.order]) if nrm is not None else np.zeros((0, 3))
                 cache[voxel] = (tree, nrm)
-            self._levels.append(_Level(voxel, dmax, *cache[voxel]))
+            tree, nrm = cache[voxel]
+            use = np.ones(len(tree.points), dtype=bool)
+            if camera is not None:
+                use = ~view_edge_mask(
+                    tree.points, camera, min(dmax, self.config.edge_reach), max_depth
+                )
+            self._levels.append(_Level(voxel, dmax, tree, nrm, use))
 
     def align(self, current: Cloud, T_init: Any = None) -> ICPResult:
         """Estimates T_ref_cur from the current cloud, starting at T_init (identity if None)."""
@@ -196,9 +247,13 @@ class ICP:
                 s, sn = _downsample(current.points, cur_n, lv.voxel)
                 src_cache[lv.voxel] = (s, sn if sn is not None else np.zeros((0, 3)))
             src, src_n = src_cache[lv.voxel]
+            tol_t, tol_r = cfg.tolerance_translation, cfg.tolerance_rotation
+            if lv is not self._levels[-1]:  # a coarse level only has to reach the next one's basin
+                tol_t = max(tol_t, cfg.coarse_tolerance * lv.dmax)
+                tol_r = max(tol_r, cfg.coarse_tolerance * lv.dmax / 0.1)
             T, status, it, pairs, _ = K.register_level(
-                src, src_n, *lv.args(), T, lv.dmax, code, cfg.max_iterations, cfg.tolerance_translation,
-                cfg.tolerance_rotation, cfg.min_correspondences, cfg.huber_delta,
+                src, src_n, *lv.args(), T, lv.dmax, code, cfg.max_iterations, tol_t, tol_r,
+                cfg.min_correspondences, cfg.huber_delta, _threads(),
             )  # fmt: skip
             total += it
             if status in (K.FEW_PAIRS, K.SINGULAR):
@@ -207,7 +262,7 @@ class ICP:
         src = current.points
         t = lv.tree
         q, idx, d2 = K.associate(
-            src, T, t.points, t.split_dim, t.split_val, t.child, t.lo, t.hi, lv.dmax
+            src, T, t.points, t.split_dim, t.split_val, t.child, t.lo, t.hi, lv.dmax, _threads()
         )
         ok = idx >= 0
         n_ok = int(ok.sum())

@@ -1,0 +1,252 @@
+"""The servo step: one call per camera frame, from a cloud (or a depth image) to a camera twist,
+with the safety rules of a servo that stops when it cannot trust its alignment.
+
+`Servo(reference, ...)` is built once per pruning pose (it builds the reference's ICP search
+structures). `Servo.step(cloud, stamp, T_base_camera)` then, per frame:
+
+1. refuses a stale frame (its stamp not newer than the last one, or older than `max_frame_age`
+   when the caller gives `now`) and an empty one;
+2. predicts the pose: the kinematic guess of paper eq. 11 when the robot's `T_base_camera` is
+   given with this frame and the last trusted one, otherwise the last trusted estimate moved by
+   the twist commanded since (zero after a refusal), otherwise the caller's `initial_guess`;
+3. aligns the frame with ICP from that prediction;
+4. trusts the alignment only if ICP converged, its fitness, correspondence count and inlier RMSE
+   pass the thresholds, and the estimate lies within what the motion since the last trusted
+   frame can explain (a pose jump means ICP slipped to another cane);
+5. returns the PBVS twist (eq. 8, saturated, its increase ramped by the acceleration limits), or
+   a zero twist and the reason.
+
+A refused frame never moves the arm: the twist is exactly zero and `trusted` is False.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from vinetwin._config import JsonFields
+from vinetwin.camera import CameraModel
+from vinetwin.cloud import Cloud, PerceptionConfig, perceive
+from vinetwin.frames import Array, check_pose, pose_error, se3_exp
+from vinetwin.servo.icp import ICP, ICPConfig, ICPResult
+from vinetwin.servo.pbvs import Gain, Limits, kinematic_guess, pbvs_error, pbvs_twist
+
+
+@dataclass(frozen=True, kw_only=True)
+class SafetyConfig(JsonFields):
+    """When an alignment is trusted enough to move the arm."""
+
+    min_fitness: float = 0.3
+    """Smallest fraction of the frame's points paired with the reference."""
+    min_correspondences: int = 60
+    """Fewest pairs."""
+    max_rmse: float = 0.003
+    """Largest inlier RMSE (m)."""
+    max_jump_translation: float = 0.01
+    """Largest distance (m) between the estimate and its prediction. Without robot kinematics
+    the distance the camera may have covered at `Limits.max_linear` since the last trusted frame
+    is added."""
+    max_jump_rotation: float = 0.05
+    """Largest angle (rad) between the estimate and its prediction (same allowance)."""
+    max_frame_age: float = 0.1
+    """A frame older than this (s) when `step` is called with `now` is stale."""
+    max_linear_acceleration: float = 0.5
+    """Ramp (m/s^2) on the increase of the commanded linear speed; 0 disables it. Stops are
+    never ramped."""
+    max_angular_acceleration: float = 2.5
+    """Ramp (rad/s^2) on the increase of the commanded angular speed; 0 disables it."""
+
+
+@dataclass
+class StepResult:
+    """What one servo step decided."""
+
+    twist: Array
+    """Camera twist (v, omega) in the current camera frame, m/s and rad/s; zeros when not
+    trusted."""
+    trusted: bool
+    reason: str = ""
+    """Why the frame was refused (empty when trusted)."""
+    T_ref_cur: Array | None = None
+    """The alignment's estimate (also when refused for a threshold, None when not aligned)."""
+    error: Array | None = None
+    """PBVS error (c*t_c, theta*u) of a trusted estimate."""
+    at_goal: bool = False
+    """The trusted error is within the goal tolerance."""
+    icp: ICPResult | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds spent in perception, icp and control."""
+
+
+class Servo:
+    """ICP-PBVS towards one reference cloud, one `step` per frame."""
+
+    def __init__(
+        self,
+        reference: Cloud,
+        *,
+        icp: ICPConfig | None = None,
+        gain: Gain | float = 0.8,
+        limits: Limits | None = None,
+        safety: SafetyConfig | None = None,
+        camera: CameraModel | None = None,
+        perception: PerceptionConfig | None = None,
+        goal_translation: float = 0.002,
+        goal_rotation: float = 0.01,
+    ) -> None:
+        """`camera` and `perception` are the twin's: they describe the reference's view (for the
+        edge-of-view rejection of ICP) and run the perception chain of `step_depth`."""
+        self.icp_config = icp or ICPConfig()
+        self.perception = perception or PerceptionConfig()
+        self.camera = camera
+        max_depth = self.perception.max_depth if camera is not None else math.inf
+        self.icp = ICP(reference, self.icp_config, camera=camera, max_depth=max_depth)
+        self.gain = gain
+        self.limits = limits or Limits()
+        self.safety = safety or SafetyConfig()
+        self.goal_translation = goal_translation
+        self.goal_rotation = goal_rotation
+        self.reset()
+
+    def reset(self, initial_guess: Any = None) -> None:
+        """Forgets the trajectory; the next frame starts from `initial_guess` (T_ref_cur, the
+        identity when None)."""
+        self._guess = None if initial_guess is None else check_pose(initial_guess, "initial_guess")
+        self._last_stamp = -math.inf
+        self._trusted_T: Array | None = None
+        self._trusted_stamp = -math.inf
+        self._trusted_base: Array | None = None
+        self._twist = np.zeros(6)
+        self._twist_stamp = -math.inf
+        self.refusals = 0
+        """Consecutive refused frames."""
+
+    # ------------------------------------------------------------------ per frame
+    def step_depth(
+        self, depth: Any, stamp: float, T_base_camera: Any = None, now: float | None = None
+    ) -> StepResult:
+        """`step` on a depth image (metres) run through the twin's perception chain."""
+        if self.camera is None:
+            raise ValueError("step_depth needs the camera given to Servo(camera=...)")
+        t0 = time.perf_counter()
+        normals = self.icp_config.variant == "symmetric"
+        try:
+            cloud = perceive(depth, self.camera, self.perception, normals=normals)
+        except Exception as exc:  # a malformed image is a refused frame, not a crash
+            return self._refuse(f"bad depth image: {exc}", stamp)
+        t_perception = time.perf_counter() - t0
+        result = self.step(cloud, stamp, T_base_camera, now)
+        result.timings["perception"] = t_perception
+        return result
+
+    def step(
+        self, cloud: Cloud, stamp: float, T_base_camera: Any = None, now: float | None = None
+    ) -> StepResult:
+        """One frame: the camera twist to command until the next frame, or zero and the reason."""
+        s = self.safety
+        if not math.isfinite(stamp) or stamp <= self._last_stamp:
+            return self._refuse(
+                f"stale frame: stamp {stamp} is not newer than the last one ({self._last_stamp})",
+                stamp,
+                keep_stamp=True,
+            )
+        self._last_stamp = stamp
+        if now is not None and now - stamp > s.max_frame_age:
+            return self._refuse(
+                f"stale frame: {now - stamp:.3f} s old (limit {s.max_frame_age} s)", stamp
+            )
+        if cloud.points.size == 0:
+            return self._refuse("empty frame: no points survived perception", stamp)
+        base = None if T_base_camera is None else np.asarray(T_base_camera, dtype=np.float64)
+        if base is not None and (base.shape != (4, 4) or not np.all(np.isfinite(base))):
+            return self._refuse("T_base_camera is not a finite 4x4 pose", stamp)
+
+        # prediction
+        kinematic = False
+        if self._trusted_T is None:
+            guess = np.eye(4) if self._guess is None else self._guess
+        elif base is not None and self._trusted_base is not None:
+            guess = kinematic_guess(self._trusted_T, self._trusted_base, base)
+            kinematic = True
+        else:
+            dt = max(stamp - max(self._twist_stamp, self._trusted_stamp), 0.0)
+            guess = self._trusted_T @ se3_exp(self._twist * dt)
+
+        t0 = time.perf_counter()
+        r = self.icp.align(cloud, guess)
+        t_icp = time.perf_counter() - t0
+        timings = {"icp": t_icp}
+
+        reason = ""
+        if not r.converged:
+            reason = f"ICP failed: {r.reason}"
+        elif r.fitness < s.min_fitness:
+            reason = f"low fitness: {r.fitness:.2f} < {s.min_fitness}"
+        elif r.correspondences < s.min_correspondences:
+            reason = f"too few correspondences: {r.correspondences} < {s.min_correspondences}"
+        elif not r.inlier_rmse <= s.max_rmse:
+            reason = f"high RMSE: {1000 * r.inlier_rmse:.2f} mm > {1000 * s.max_rmse:.2f} mm"
+        elif self._trusted_T is not None:
+            jt, jr = pose_error(r.T_ref_cur, guess)
+            allow_t, allow_r = s.max_jump_translation, s.max_jump_rotation
+            if not kinematic:
+                since = max(stamp - self._trusted_stamp, 0.0)
+                allow_t += self.limits.max_linear * since
+                allow_r += self.limits.max_angular * since
+            if jt > allow_t or jr > allow_r:
+                reason = (
+                    f"pose jump: the estimate is {1000 * jt:.1f} mm / {math.degrees(jr):.2f} deg "
+                    f"from its prediction (allowed {1000 * allow_t:.1f} mm / "
+                    f"{math.degrees(allow_r):.2f} deg)"
+                )
+        if reason:
+            out = self._refuse(reason, stamp)
+            out.T_ref_cur, out.icp, out.timings = r.T_ref_cur, r, timings
+            return out
+
+        t0 = time.perf_counter()
+        T = r.T_ref_cur
+        e = pbvs_error(T)
+        twist = self._ramp(pbvs_twist(T, self.gain, self.limits), stamp)
+        timings["control"] = time.perf_counter() - t0
+        self._trusted_T, self._trusted_stamp, self._trusted_base = T, stamp, base
+        self._twist, self._twist_stamp = twist, stamp
+        self.refusals = 0
+        at_goal = (
+            float(np.linalg.norm(e[:3])) <= self.goal_translation
+            and float(np.linalg.norm(e[3:])) <= self.goal_rotation
+        )
+        return StepResult(twist, True, "", T, e, at_goal, r, timings)
+
+    # ------------------------------------------------------------------ helpers
+    def _ramp(self, twist: Array, stamp: float) -> Array:
+        """Limits how fast the commanded speeds grow (from the last commanded twist)."""
+        s = self.safety
+        dt = stamp - self._twist_stamp
+        if not math.isfinite(dt) or dt <= 0:
+            dt = 0.0
+        out = twist.copy()
+        for sl, acc in (
+            (slice(0, 3), s.max_linear_acceleration),
+            (slice(3, 6), s.max_angular_acceleration),
+        ):
+            if acc <= 0:
+                continue
+            prev = self._twist[sl]
+            delta = out[sl] - prev
+            n = float(np.linalg.norm(delta))
+            cap = acc * dt
+            if n > cap and float(np.linalg.norm(out[sl])) > float(np.linalg.norm(prev)) - 1e-12:
+                out[sl] = prev + delta * (cap / n)
+        return out
+
+    def _refuse(self, reason: str, stamp: float, keep_stamp: bool = False) -> StepResult:
+        self.refusals += 1
+        self._twist = np.zeros(6)
+        if not keep_stamp and math.isfinite(stamp):
+            self._twist_stamp = max(self._twist_stamp, stamp)
+        return StepResult(np.zeros(6), False, reason)
