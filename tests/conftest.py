@@ -34,3 +34,53 @@ def sample_twin_dir() -> Path:
     p = SAMPLES / "vine_bilateral.twin"
     assert (p / "twin.json").exists(), "bundled sample twin missing; run samples/make_samples.py"
     return p
+
+
+class VineViews:
+    """The bilateral sample rendered like a servo sees it: a reference cloud per pruning pose and
+    current clouds (depth and cloud) at known offsets from it, each with its own D405 noise."""
+
+    def __init__(self, twin_dir: Path) -> None:
+        from vinetwin.render.backends import get_backend
+        from vinetwin.twin import Twin
+
+        self.twin = Twin.load(twin_dir)
+        mesh = self.twin.load_mesh()
+        self.backend = get_backend("open3d", mesh.vertices, mesh.faces, self.twin.camera)
+        self._refs: dict[str, object] = {}
+
+    def depth(self, T_vine_camera: np.ndarray, seed: int) -> np.ndarray:
+        from vinetwin.render.sensor import SensorConfig, apply_d405_model
+
+        clean = self.backend.render(T_vine_camera)
+        return apply_d405_model(
+            clean, self.twin.camera, np.random.default_rng(seed), SensorConfig()
+        )
+
+    def cloud(self, T_vine_camera: np.ndarray, seed: int):  # type: ignore[no-untyped-def]
+        from vinetwin.cloud import perceive
+
+        return perceive(self.depth(T_vine_camera, seed), self.twin.camera, self.twin.perception)
+
+    def reference(self, pose_id: str):  # type: ignore[no-untyped-def]
+        if pose_id not in self._refs:
+            self._refs[pose_id] = self.cloud(self.twin.pose(pose_id).T_vine_camera, 1)
+        return self._refs[pose_id]
+
+    def cases(self, offset_m: float, offset_deg: float, per_pose: int, seed: int = 7):  # type: ignore[no-untyped-def]
+        """(pose id, reference, current cloud, T_ref_cur truth) at random offsets of the given size."""
+        from vinetwin import frames as fr
+
+        rng = np.random.default_rng(seed)
+        out = []
+        for pose in self.twin.poses:
+            for k in range(per_pose):
+                D = fr.random_pose(rng, offset_m, np.radians(offset_deg))
+                cur = self.cloud(pose.T_vine_camera @ D, 100 + k)
+                out.append((pose.id, self.reference(pose.id), cur, D))
+        return out
+
+
+@pytest.fixture(scope="session")
+def vine_views(sample_twin_dir: Path) -> VineViews:
+    return VineViews(sample_twin_dir)

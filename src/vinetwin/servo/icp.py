@@ -48,7 +48,7 @@ class ICPConfig:
     """One of point_to_point, lm, point_to_plane, symmetric."""
     max_correspondence_distance: float = 0.005
     """Pairs farther apart than this (m) are rejected at the final level."""
-    max_iterations: int = 40
+    max_iterations: int = 60
     """Iterations per level."""
     tolerance_translation: float = 1e-5
     """Convergence when an update moves less than this (m)..."""
@@ -142,10 +142,6 @@ class _Level:
     """Reference normals in the tree's point order ((0, 3) when the reference has none)."""
     use: npt.NDArray[np.bool_]
     """False for reference points at the edge of the reference view (tree order)."""
-
-    def args(self) -> tuple[Any, ...]:
-        t = self.tree
-        return (t.points, self.normals, t.split_dim, t.split_val, t.child, t.lo, t.hi, self.use)
 
 
 def view_edge_mask(
@@ -251,8 +247,10 @@ class ICP:
             if lv is not self._levels[-1]:  # a coarse level only has to reach the next one's basin
                 tol_t = max(tol_t, cfg.coarse_tolerance * lv.dmax)
                 tol_r = max(tol_r, cfg.coarse_tolerance * lv.dmax / 0.1)
+            t = lv.tree
             T, status, it, pairs, _ = K.register_level(
-                src, src_n, *lv.args(), T, lv.dmax, code, cfg.max_iterations, tol_t, tol_r,
+                src, src_n, t.points, lv.normals, t.split_dim, t.split_val, t.child, t.lo, t.hi,
+                lv.use, T, lv.dmax, code, cfg.max_iterations, tol_t, tol_r,
                 cfg.min_correspondences, cfg.huber_delta, _threads(),
             )  # fmt: skip
             total += it
