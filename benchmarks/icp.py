@@ -35,6 +35,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 from vinetwin import _lazy
@@ -351,7 +352,7 @@ def main() -> None:
     print(
         f"sample {twin.name}, {twin.camera.width}x{twin.camera.height}, {len(twin.poses)} poses x "
         f"{args.trials} offsets, {os.cpu_count()} CPUs; small_gicp {args.threads} threads, Open3D "
-        "its OpenMP default, vinetwin 1 thread"
+        "its OpenMP default, vinetwin numba threads ({numba.get_num_threads()})"
     )
     results: dict[str, Any] = {
         "sample": twin.name,

@@ -39,6 +39,9 @@ from vinetwin.servo._icp_kernels import NNTree
 
 NDF = npt.NDArray[np.float64]
 
+#: Default edge-of-view rejection reach per variant (m); absent: none.
+EDGE_REACH = {"point_to_plane": 0.003}
+
 
 @dataclass(frozen=True, kw_only=True)
 class ICPConfig:
@@ -57,12 +60,15 @@ class ICPConfig:
     schedule: tuple[tuple[float, float], ...] = ((0.0, 0.03), (0.0, 0.01))
     """Levels run before the final one, coarse to fine: (voxel size m, correspondence distance
     m). Voxel 0 uses the clouds as given. The final level is (0, max_correspondence_distance)."""
-    coarse_tolerance: float = 0.01
-    """Levels before the final one converge when an update moves less than this fraction of
-    their reach (and turns less than that distance at a 10 cm lever arm)."""
-    edge_reach: float = 0.01
+    coarse_tolerance: float = 0.0
+    """Levels before the final one also stop when an update moves less than this fraction of
+    their reach (and turns less than that distance at a 10 cm lever arm); 0: the tolerances
+    above everywhere. (Point-to-point creeps along canes: stopping it early costs accuracy.)"""
+    edge_reach: float | None = None
     """With the reference's camera given to ICP: pairs whose reference point lies within
-    min(this, the level's reach) of the edge of the reference view are rejected (m)."""
+    min(this, the level's reach) of the edge of the reference view are rejected (m). None: the
+    variant's default, `EDGE_REACH` (measured on the sample's views, benchmarks/icp.py: it
+    helps point-to-plane, and costs symmetric and point-to-point accuracy)."""
     min_points: int = 30
     """Fewer points than this in a cloud is a failure."""
     min_correspondences: int = 20
@@ -85,6 +91,12 @@ class ICPConfig:
                 raise InputError(
                     f"schedule level {level!r} is not (voxel >= 0, correspondence distance > 0)"
                 )
+
+    def edge_reach_m(self) -> float:
+        """The edge-of-view reach in use (m)."""
+        if self.edge_reach is not None:
+            return self.edge_reach
+        return EDGE_REACH.get(self.variant, 0.0)
 
     def levels(self) -> list[tuple[float, float]]:
         """All levels, the final one included: (voxel size, correspondence distance)."""
@@ -215,9 +227,9 @@ class ICP:
                 cache[voxel] = (tree, nrm)
             tree, nrm = cache[voxel]
             use = np.ones(len(tree.points), dtype=bool)
-            if camera is not None:
+            if camera is not None and self.config.edge_reach_m() > 0:
                 use = ~view_edge_mask(
-                    tree.points, camera, min(dmax, self.config.edge_reach), max_depth
+                    tree.points, camera, min(dmax, self.config.edge_reach_m()), max_depth
                 )
             self._levels.append(_Level(voxel, dmax, tree, nrm, use))
 
