@@ -451,6 +451,7 @@ def register_level(
     min_pairs: int,
     huber: float,
     threads: int,
+    accelerate: bool,
 ) -> tuple[np.ndarray, int, int, int, float]:
     """One level of ICP from T0. Returns (T, status, iterations, pairs, rmse of the last
     association)."""
@@ -463,6 +464,12 @@ def register_level(
     size = (n + chunks - 1) // chunks
     hist = np.zeros((4, 4, 4))
     hist[0] = T
+    alpha = 1.0
+    cooldown = 0
+    extrapolated = False
+    T_plain = T.copy()
+    rmse_before = np.inf
+    prev_step = np.zeros(6)
     mu = 1e-3
     it = 0
     npairs = 0
@@ -484,6 +491,13 @@ def register_level(
         for s in range(npairs):
             acc += d2[sel[s]]
         rmse = math.sqrt(acc / npairs)
+        if extrapolated:
+            extrapolated = False
+            if rmse > rmse_before:  # the jump made things worse: back to the plain step
+                T = T_plain
+                alpha = 1.0
+                cooldown = 3
+                continue
         if variant == 0:
             dT = _kabsch_step(q, pts, idx, sel)
         elif variant == 1:
@@ -506,9 +520,29 @@ def register_level(
                 dT = _pose(_rodrigues(x[3:]), x[:3])
             else:
                 dT = _symmetric_pose(x)
-        T = dT @ T
         if _small(dT, tol_t, tol_r):
-            return T, CONVERGED, it, npairs, rmse
+            return dT @ T, CONVERGED, it, npairs, rmse
+        step = _step_vector(dT)
+        if accelerate and variant <= 1:
+            # Besl & McKay's acceleration, simplified: while successive updates point the same
+            # way, take a growing multiple of the update; undo it if the energy rises
+            if cooldown > 0:
+                cooldown -= 1
+                alpha = 1.0
+            elif _cosine(step, prev_step) > 0.9:
+                alpha = min(2.0 * alpha, 16.0)
+            else:
+                alpha = 1.0
+            prev_step = step
+            if alpha > 1.0:
+                T_plain = dT @ T
+                rmse_before = rmse
+                extrapolated = True
+                T = _pose(_rodrigues(alpha * _rotvec(dT)), alpha * dT[:3, 3]) @ T
+            else:
+                T = dT @ T
+        else:
+            T = dT @ T
         # a hard reach can make the pair set flip between two or three states: a limit cycle
         # whose poses agree within the tolerance is a fixed point too
         for back in range(2, 4):
@@ -516,6 +550,34 @@ def register_level(
                 return T, CONVERGED, it, npairs, rmse
         hist[it % 4] = T
     return T, ITERATION_LIMIT, it, npairs, rmse
+
+
+@nb.njit(cache=True, nogil=True)
+def _rotvec(dT: np.ndarray) -> np.ndarray:
+    """Rotation vector of a pose's rotation (angles below pi)."""
+    c = min(1.0, max(-1.0, (dT[0, 0] + dT[1, 1] + dT[2, 2] - 1.0) / 2.0))
+    th = math.acos(c)
+    v = np.array([dT[2, 1] - dT[1, 2], dT[0, 2] - dT[2, 0], dT[1, 0] - dT[0, 1]])
+    s = math.sin(th)
+    return v * 0.5 if s < 1e-12 else v * (th / (2.0 * s))
+
+
+@nb.njit(cache=True, nogil=True)
+def _step_vector(dT: np.ndarray) -> np.ndarray:
+    """An update as a 6-vector (translation, rotation vector times 0.1 m)."""
+    out = np.empty(6)
+    out[:3] = dT[:3, 3]
+    out[3:] = 0.1 * _rotvec(dT)
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _cosine(a: np.ndarray, b: np.ndarray) -> float:
+    na = math.sqrt((a * a).sum())
+    nb_ = math.sqrt((b * b).sum())
+    if na == 0.0 or nb_ == 0.0:
+        return 0.0
+    return float((a * b).sum()) / (na * nb_)
 
 
 @nb.njit(cache=True, nogil=True)

@@ -60,6 +60,9 @@ class ICPConfig:
     schedule: tuple[tuple[float, float], ...] = ((0.0, 0.03), (0.0, 0.01))
     """Levels run before the final one, coarse to fine: (voxel size m, correspondence distance
     m). Voxel 0 uses the clouds as given. The final level is (0, max_correspondence_distance)."""
+    accelerate: bool = True
+    """Point-to-point and LM: while successive updates point the same way, take up to 16 times
+    the update, undone if the energy rises (after Besl & McKay's accelerated ICP)."""
     coarse_tolerance: float = 0.0
     """Levels before the final one also stop when an update moves less than this fraction of
     their reach (and turns less than that distance at a 10 cm lever arm); 0: the tolerances
@@ -263,7 +266,7 @@ class ICP:
             T, status, it, pairs, _ = K.register_level(
                 src, src_n, t.points, lv.normals, t.split_dim, t.split_val, t.child, t.lo, t.hi,
                 lv.use, T, lv.dmax, code, cfg.max_iterations, tol_t, tol_r,
-                cfg.min_correspondences, cfg.huber_delta, _threads(),
+                cfg.min_correspondences, cfg.huber_delta, _threads(), cfg.accelerate,
             )  # fmt: skip
             total += it
             if status in (K.FEW_PAIRS, K.SINGULAR):
