@@ -352,7 +352,7 @@ def main() -> None:
     print(
         f"sample {twin.name}, {twin.camera.width}x{twin.camera.height}, {len(twin.poses)} poses x "
         f"{args.trials} offsets, {os.cpu_count()} CPUs; small_gicp {args.threads} threads, Open3D "
-        "its OpenMP default, vinetwin numba threads ({numba.get_num_threads()})"
+        f"its OpenMP default, vinetwin {numba.get_num_threads()} numba threads"
     )
     results: dict[str, Any] = {
         "sample": twin.name,

@@ -1,7 +1,8 @@
-"""ICP-based position-based visual servoing.
+"""ICP-based position-based visual servoing (see docs/servo.md).
 
+- `icp`: the four ICP variants behind one interface, compiled (numba), built once per reference;
 - `pbvs`: the PBVS error, interaction matrix, control law (constant or adaptive gain, saturation)
   and the kinematic initial guess (paper eqs. 6-8, 11);
-- `icp`: the four ICP variants behind one interface (correctness reference; the camera-rate
-  speed work, the benchmark and the safety servo step are open work of the servo issue).
+- `step`: `Servo`, one call per frame from a cloud or depth image to a camera twist, with the
+  safety rules that command zero velocity when the alignment is not trusted.
 """

@@ -385,7 +385,7 @@ def _lm_step(
         M = A.copy()
         for a in range(6):
             M[a, a] += mu * A[a, a]
-        if abs(np.linalg.det(M)) < 1e-300:
+        if not _well_posed(M):
             mu *= 10.0
             continue
         x = np.linalg.solve(M, -g)
@@ -463,7 +463,8 @@ def register_level(
     chunks = max(threads, 1) if n > 256 else 1
     size = (n + chunks - 1) // chunks
     hist = np.zeros((4, 4, 4))
-    hist[0] = T
+    for k in range(4):
+        hist[k] = T
     alpha = 1.0
     cooldown = 0
     extrapolated = False
@@ -546,10 +547,19 @@ def register_level(
         # a hard reach can make the pair set flip between two or three states: a limit cycle
         # whose poses agree within the tolerance is a fixed point too
         for back in range(2, 4):
-            if it > back and _small(np.linalg.solve(hist[(it - back) % 4], T), tol_t, tol_r):
+            if it > back and _small(_between(hist[(it - back) % 4], T), tol_t, tol_r):
                 return T, CONVERGED, it, npairs, rmse
         hist[it % 4] = T
     return T, ITERATION_LIMIT, it, npairs, rmse
+
+
+@nb.njit(cache=True, nogil=True)
+def _between(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """inv(A) @ B for rigid transforms."""
+    Ai = np.eye(4)
+    Ai[:3, :3] = A[:3, :3].T
+    Ai[:3, 3] = -(A[:3, :3].T @ A[:3, 3])
+    return Ai @ B
 
 
 @nb.njit(cache=True, nogil=True)

@@ -263,11 +263,14 @@ class ICP:
                 tol_t = max(tol_t, cfg.coarse_tolerance * lv.dmax)
                 tol_r = max(tol_r, cfg.coarse_tolerance * lv.dmax / 0.1)
             t = lv.tree
-            T, status, it, pairs, _ = K.register_level(
-                src, src_n, t.points, lv.normals, t.split_dim, t.split_val, t.child, t.lo, t.hi,
-                lv.use, T, lv.dmax, code, cfg.max_iterations, tol_t, tol_r,
-                cfg.min_correspondences, cfg.huber_delta, _threads(), cfg.accelerate,
-            )  # fmt: skip
+            try:
+                T, status, it, pairs, _ = K.register_level(
+                    src, src_n, t.points, lv.normals, t.split_dim, t.split_val, t.child, t.lo,
+                    t.hi, lv.use, T, lv.dmax, code, cfg.max_iterations, tol_t, tol_r,
+                    cfg.min_correspondences, cfg.huber_delta, _threads(), cfg.accelerate,
+                )  # fmt: skip
+            except np.linalg.LinAlgError as exc:  # a safety net: the kernels test what they solve
+                return ICPResult(T, False, iterations=total, reason=f"numerical failure: {exc}")
             total += it
             if status in (K.FEW_PAIRS, K.SINGULAR):
                 break
