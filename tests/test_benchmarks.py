@@ -1,0 +1,37 @@
+"""The ICP benchmark runs end to end (quick mode) and writes every figure; its timings are only
+printed, never asserted."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.conftest import ROOT
+
+
+def test_icp_benchmark_quick(tmp_path: Path) -> None:
+    out = tmp_path / "icp.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "icp.py"), "--quick", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads(out.read_text())
+    assert [t["start"] for t in data["tables"]] == ["warm", "identity"]
+    for table in data["tables"]:
+        methods = {r["method"]: r for r in table["rows"]}
+        assert len(methods) == 10
+        for v in ("point_to_point", "point_to_plane", "symmetric"):
+            assert methods[f"vinetwin {v}"]["ratio_to_fastest_peer"] > 0
+        assert methods["vinetwin lm"]["ratio_to_our_point_to_plane"] > 0
+    assert {c["variant"] for c in data["cycle"]} == {
+        "point_to_point",
+        "lm",
+        "point_to_plane",
+        "symmetric",
+    }
+    assert "servo cycle" in proc.stdout
