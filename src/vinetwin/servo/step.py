@@ -12,7 +12,8 @@ structures). `Servo.step(cloud, stamp, T_base_camera)` then, per frame:
 3. aligns the frame with ICP from that prediction;
 4. trusts the alignment only if ICP converged, its fitness, correspondence count and inlier RMSE
    pass the thresholds, and the estimate lies within what the motion since the last trusted
-   frame can explain (a pose jump means ICP slipped to another cane);
+   frame can explain (a pose jump means ICP slipped to another cane), unless the same jump is
+   seen in `reacquire_frames` consecutive frames (the vine itself moved: the servo re-acquires);
 5. returns the PBVS twist (eq. 8, saturated, its increase ramped by the acceleration limits), or
    a zero twist and the reason.
 
@@ -31,9 +32,12 @@ import numpy as np
 from vinetwin._config import JsonFields
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
-from vinetwin.frames import Array, check_pose, pose_error, se3_exp
+from vinetwin.frames import Array, check_pose, invert, pose_error, se3_exp
 from vinetwin.servo.icp import ICP, ICPConfig, ICPResult
 from vinetwin.servo.pbvs import Gain, Limits, kinematic_guess, pbvs_error, pbvs_twist
+
+#: Where each frame's ICP starts (see `Servo`).
+GUESSES = ("kinematic", "previous", "identity")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -54,6 +58,14 @@ class SafetyConfig(JsonFields):
     """Largest angle (rad) between the estimate and its prediction (same allowance)."""
     max_frame_age: float = 0.1
     """A frame older than this (s) when `step` is called with `now` is stale."""
+    reacquire_frames: int = 5
+    """A pose jump seen consistently in this many consecutive frames (estimates within
+    `reacquire_translation` / `reacquire_rotation` of each other) is accepted as the scene having
+    moved; 0: never."""
+    reacquire_translation: float = 0.002
+    """m."""
+    reacquire_rotation: float = 0.01
+    """rad."""
     max_linear_acceleration: float = 0.5
     """Ramp (m/s^2) on the increase of the commanded linear speed; 0 disables it. Stops are
     never ramped."""
@@ -97,9 +109,16 @@ class Servo:
         perception: PerceptionConfig | None = None,
         goal_translation: float = 0.002,
         goal_rotation: float = 0.01,
+        guess: str = "kinematic",
     ) -> None:
         """`camera` and `perception` are the twin's: they describe the reference's view (for the
-        edge-of-view rejection of ICP) and run the perception chain of `step_depth`."""
+        edge-of-view rejection of ICP) and run the perception chain of `step_depth`. `guess` is
+        where each frame's ICP starts: "kinematic" (eq. 11, the default), "previous" (the last
+        trusted estimate, ignoring the robot's motion) or "identity" (no initial guess, as plain
+        ICP; the pose-jump rule is then off, having no prediction to compare with)."""
+        if guess not in GUESSES:
+            raise ValueError(f"unknown guess '{guess}'; choose one of: {', '.join(GUESSES)}")
+        self.guess = guess
         self.icp_config = icp or ICPConfig()
         self.perception = perception or PerceptionConfig()
         self.camera = camera
@@ -124,6 +143,7 @@ class Servo:
         self._twist_stamp = -math.inf
         self.refusals = 0
         """Consecutive refused frames."""
+        self._jumps: list[Array] = []
 
     # ------------------------------------------------------------------ per frame
     def step_depth(
@@ -167,8 +187,12 @@ class Servo:
 
         # prediction
         kinematic = False
-        if self._trusted_T is None:
+        if self.guess == "identity":
+            guess = np.eye(4)
+        elif self._trusted_T is None:
             guess = np.eye(4) if self._guess is None else self._guess
+        elif self.guess == "previous":
+            guess = self._trusted_T
         elif base is not None and self._trusted_base is not None:
             guess = kinematic_guess(self._trusted_T, self._trusted_base, base)
             kinematic = True
@@ -190,23 +214,26 @@ class Servo:
             reason = f"too few correspondences: {r.correspondences} < {s.min_correspondences}"
         elif not r.inlier_rmse <= s.max_rmse:
             reason = f"high RMSE: {1000 * r.inlier_rmse:.2f} mm > {1000 * s.max_rmse:.2f} mm"
-        elif self._trusted_T is not None:
+        elif self._trusted_T is not None and self.guess != "identity":
             jt, jr = pose_error(r.T_ref_cur, guess)
             allow_t, allow_r = s.max_jump_translation, s.max_jump_rotation
             if not kinematic:
                 since = max(stamp - self._trusted_stamp, 0.0)
                 allow_t += self.limits.max_linear * since
                 allow_r += self.limits.max_angular * since
-            if jt > allow_t or jr > allow_r:
+            if (jt > allow_t or jr > allow_r) and not self._consistent_jump(r.T_ref_cur, base):
                 reason = (
                     f"pose jump: the estimate is {1000 * jt:.1f} mm / {math.degrees(jr):.2f} deg "
                     f"from its prediction (allowed {1000 * allow_t:.1f} mm / "
                     f"{math.degrees(allow_r):.2f} deg)"
                 )
         if reason:
+            if not reason.startswith("pose jump"):
+                self._jumps.clear()
             out = self._refuse(reason, stamp)
             out.T_ref_cur, out.icp, out.timings = r.T_ref_cur, r, timings
             return out
+        self._jumps.clear()
 
         t0 = time.perf_counter()
         T = r.T_ref_cur
@@ -223,6 +250,25 @@ class Servo:
         return StepResult(twist, True, "", T, e, at_goal, r, timings)
 
     # ------------------------------------------------------------------ helpers
+    def _consistent_jump(self, T_ref_cur: Array, base: Array | None) -> bool:
+        """A jump seen the same way in `reacquire_frames` consecutive frames is the scene moving
+        (the vine was pushed), not ICP slipping: the servo re-acquires it. Estimates are
+        compared as the reference camera's pose in the robot base (or as they are, the arm being
+        stopped after a refusal, without kinematics)."""
+        s = self.safety
+        if s.reacquire_frames <= 0:
+            return False
+        implied = T_ref_cur if base is None else base @ invert(T_ref_cur)
+        self._jumps.append(implied)
+        if len(self._jumps) < s.reacquire_frames:
+            return False
+        recent = self._jumps[-s.reacquire_frames :]
+        for other in recent[:-1]:
+            jt, jr = pose_error(other, implied)
+            if jt > s.reacquire_translation or jr > s.reacquire_rotation:
+                return False
+        return True
+
     def _ramp(self, twist: Array, stamp: float) -> Array:
         """Limits how fast the commanded speeds grow (from the last commanded twist)."""
         s = self.safety
