@@ -61,7 +61,7 @@ def test_trusted_frame_gives_the_pbvs_twist(ref: Cloud, vine_views: VineViews) -
         ("few points", "fewer than the minimum"),
         ("stale stamp", "stale frame"),
         ("old frame", "stale frame"),
-        ("low fitness", "low fitness"),
+        ("low overlap", "low overlap"),
         ("few pairs", "too few correspondences"),
         ("high rmse", "high RMSE"),
         ("bad base pose", "T_base_camera"),
@@ -74,8 +74,8 @@ def test_untrusted_frames_give_zero_twist_and_reason(
     D = fr.make_pose(t=[0.003, 0.0, 0.0])
     good = seen_from(ref, D)
     safety: dict[str, float] = {}
-    if case == "low fitness":
-        safety["min_fitness"] = 1.01
+    if case == "low overlap":
+        safety["min_overlap"] = 1.01
     if case == "few pairs":
         safety["min_correspondences"] = 10**6
     if case == "high rmse":

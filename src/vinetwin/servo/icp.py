@@ -121,6 +121,10 @@ class ICPResult:
     """Current camera in the reference camera frame (the last estimate, even on failure)."""
     converged: bool
     fitness: float = 0.0
+    """Fraction of current points with an accepted correspondence (Open3D's definition)."""
+    overlap: float = 0.0
+    """Accepted pairs over the size of the smaller cloud: near 1 when one view holds the other
+    (a camera far from its goal sees more than the reference, and its fitness is low)."""
     """Fraction of current points with an accepted correspondence."""
     inlier_rmse: float = float("nan")
     """RMS point-to-point distance of the accepted pairs (m)."""
@@ -286,6 +290,7 @@ class ICP:
             T,
             status == K.CONVERGED,
             fitness=n_ok / len(src),
+            overlap=n_ok / min(len(src), len(self.reference.points)),
             inlier_rmse=float(np.sqrt(d2[ok].mean())) if n_ok else float("nan"),
             correspondences=n_ok,
             iterations=total,

@@ -10,7 +10,7 @@ structures). `Servo.step(cloud, stamp, T_base_camera)` then, per frame:
    given with this frame and the last trusted one, otherwise the last trusted estimate moved by
    the twist commanded since (zero after a refusal), otherwise the caller's `initial_guess`;
 3. aligns the frame with ICP from that prediction;
-4. trusts the alignment only if ICP converged, its fitness, correspondence count and inlier RMSE
+4. trusts the alignment only if ICP converged, its overlap, correspondence count and inlier RMSE
    pass the thresholds, and the estimate lies within what the motion since the last trusted
    frame can explain (a pose jump means ICP slipped to another cane), unless the same jump is
    seen in `reacquire_frames` consecutive frames (the vine itself moved: the servo re-acquires);
@@ -44,8 +44,8 @@ GUESSES = ("kinematic", "previous", "identity")
 class SafetyConfig(JsonFields):
     """When an alignment is trusted enough to move the arm."""
 
-    min_fitness: float = 0.3
-    """Smallest fraction of the frame's points paired with the reference."""
+    min_overlap: float = 0.3
+    """Smallest share of the smaller cloud (frame or reference) paired (`ICPResult.overlap`)."""
     min_correspondences: int = 60
     """Fewest pairs."""
     max_rmse: float = 0.003
@@ -208,8 +208,8 @@ class Servo:
         reason = ""
         if not r.converged:
             reason = f"ICP failed: {r.reason}"
-        elif r.fitness < s.min_fitness:
-            reason = f"low fitness: {r.fitness:.2f} < {s.min_fitness}"
+        elif r.overlap < s.min_overlap:
+            reason = f"low overlap: {r.overlap:.2f} < {s.min_overlap}"
         elif r.correspondences < s.min_correspondences:
             reason = f"too few correspondences: {r.correspondences} < {s.min_correspondences}"
         elif not r.inlier_rmse <= s.max_rmse:
