@@ -232,6 +232,94 @@ def _print_export(report: object, where: Path) -> None:
     )
 
 
+VariantChoice = Literal["point_to_point", "lm", "point_to_plane", "symmetric"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Campaign:
+    """Servo in simulation from the paper's starts with each ICP variant, plus a disturbance run
+    per variant and runs with and without the initial guess; write a report (Markdown, HTML,
+    PNG plots, JSON)."""
+
+    twin: Annotated[Path, tyro.conf.Positional]
+    """Twin folder."""
+    preset: Literal["table1", "table2", "quick"] = "table1"
+    """Starts: the paper's Table 1 (4), Table 2 (6), or one close start (quick)."""
+    sim: Literal["kinematic", "mujoco"] = "kinematic"
+    """Simulation: a free-flying camera (kinematic); mujoco is not built yet."""
+    variants: tuple[VariantChoice, ...] = ("point_to_point", "lm", "point_to_plane", "symmetric")
+    """ICP variants to run."""
+    pose: str = ""
+    """Pruning pose to servo to (default: the twin's first)."""
+    out: Path | None = None
+    """Report folder (default: TWIN/campaign/PRESET)."""
+    json: Path | None = None
+    """Also write the figures (campaign.json) here."""
+    duration: float = 30.0
+    """Longest simulated time per run (s)."""
+    camera_rate: float = 30.0
+    """Camera frames per second."""
+    fixed_period: float = 0.0
+    """Hold each twist this long (s) instead of the measured processing time; 0: measured."""
+    disturbance: bool = True
+    """Add a disturbance run per variant (the vine moves 3 cm and 0.05 rad at 10 s)."""
+    guess_comparison: bool = True
+    """Add point-to-plane runs with and without the kinematic initial guess."""
+    workers: int = 0
+    """Processes; 0: one per core."""
+    seed: int = 0
+    """Seed of the starts, the noise and the registration error."""
+
+    def run(self) -> None:
+        import shutil
+
+        from vinetwin.servo.campaign import CampaignConfig, run_campaign
+        from vinetwin.twin.model import Twin
+
+        twin = Twin.load(self.twin)
+        cfg = CampaignConfig(
+            preset=self.preset,
+            variants=tuple(self.variants),
+            pose=self.pose,
+            sim=self.sim,
+            duration=self.duration,
+            camera_rate=self.camera_rate,
+            fixed_period=self.fixed_period,
+            disturbance=self.disturbance,
+            guess_comparison=self.guess_comparison,
+            workers=self.workers,
+            seed=self.seed,
+        )
+        out = self.out or (self.twin / "campaign" / self.preset)
+        data = _with_progress("simulating", lambda progress: run_campaign(twin, cfg, out, progress))
+        _print_campaign(data)
+        log.info("report: %s", out / "report.html")
+        if self.json:
+            self.json.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(out / "campaign.json", self.json)
+
+
+def _print_campaign(data: dict[str, object]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from vinetwin.servo.report import other_rows, table_rows
+
+    con = Console()
+    for rows, title in (
+        (table_rows(data), "starts x variants"),
+        (other_rows(data, "disturbance"), "disturbance"),
+        (other_rows(data, "guess"), "initial guess"),
+    ):
+        if not rows:
+            continue
+        keys = [k for k in rows[0] if k != "refusals"]
+        table = Table(*keys, title=title)
+        for r in rows:
+            table.add_row(*(r[k] for k in keys))
+        con.print(table)
+
+
 def _bundled_sample() -> Path:
     """The bundled sample twin: `samples/vine_bilateral.twin` of the source checkout."""
     here = Path(__file__).resolve()
@@ -315,6 +403,7 @@ COMMANDS: dict[str, type] = {
     "export": Export,
     "preview": Preview,
     "demo": Demo,
+    "campaign": Campaign,
 }
 
 

@@ -1,0 +1,258 @@
+"""The paper's campaign in simulation: a grid of starts times ICP variants, plus the disturbance
+runs (paper Fig. 6) and the runs with and without the initial guess (Fig. 4), written as a report.
+
+`run_campaign(twin, CampaignConfig(...), out_dir)` writes into `out_dir`:
+- `campaign.json`: the configuration, one summary per run and its time series;
+- `report.md` and `report.html`: the table (with the paper's figures beside ours when the preset
+  is one of the paper's) and the plots;
+- `fig5_errors.png` (translation and rotation error against time per variant, one column per
+  start), `fig5_trajectories.png` (3D camera paths), `fig6_disturbance.png`, `fig4_guess.png`.
+
+Every run's start is a camera pose at the preset's translation and rotation from the pruning
+pose that still sees the cut (`sim.start_pose`, seeded by the start's index, so every variant
+starts from the same pose). Runs go to `workers` processes, each with its own renderer.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing as mp
+import os
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin._config import JsonFields
+from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
+from vinetwin.errors import InputError
+from vinetwin.render.reference import pose_seed
+from vinetwin.servo.sim import Disturbance, SimConfig, SimRun, simulate, start_pose
+from vinetwin.twin.model import Twin, atomic_write_text, load_mesh
+
+#: Initial errors (translation m, rotation rad) of the paper's Tables 1 and 2.
+PRESETS: dict[str, tuple[tuple[float, float], ...]] = {
+    "table1": (
+        (0.184749, 0.351915),
+        (0.166275, 0.567889),
+        (0.034708, 0.550662),
+        (0.316327, 0.12695),
+    ),
+    "table2": (
+        (0.193, 0.35),
+        (0.167, 0.566),
+        (0.034, 0.55),
+        (0.185, 0.22),
+        (0.20, 0.168),
+        (0.037, 0.47),
+    ),
+    "quick": ((0.05, 0.15),),
+}
+#: The paper's names of the variants (data/paper/results.json).
+PAPER_NAMES = {
+    "point_to_point": "ICP",
+    "lm": "LM-ICP",
+    "point_to_plane": "PP-ICP",
+    "symmetric": "SYMM-ICP",
+}
+#: The paper's Table 1 (sparse vine, real robot): final static error (m, rad) and convergence
+#: time (s) per test and variant; None: did not converge.
+PAPER_TABLE1: tuple[dict[str, tuple[float, float, float] | None], ...] = (
+    {"ICP": (0.003072, 0.002162, 24.89), "LM-ICP": (0.003333, 0.003612, 33.76), "PP-ICP": None, "SYMM-ICP": (0.002912, 0.004765, 14.27)},
+    {"ICP": (0.002969, 0.022047, 18.31), "LM-ICP": (0.002691, 0.021488, 26.53), "PP-ICP": (0.002524, 0.022144, 17.73), "SYMM-ICP": (0.002115, 0.021275, 18.24)},
+    {"ICP": (0.002027, 0.02138, 16.85), "LM-ICP": (0.001722, 0.022581, 16.62), "PP-ICP": None, "SYMM-ICP": None},
+    {"ICP": (0.002007, 0.019513, 8.83), "LM-ICP": None, "PP-ICP": (0.003296, 0.01839, 6.74), "SYMM-ICP": (0.004129, 0.016704, 7.37)},
+)  # fmt: skip
+
+
+@dataclass(frozen=True, kw_only=True)
+class CampaignConfig(JsonFields):
+    preset: str = "table1"
+    """Starts: table1 (the paper's four), table2 (its six) or quick (one close start)."""
+    variants: tuple[str, ...] = ICP_VARIANTS
+    pose: str = ""
+    """Pruning pose to servo to (default: the twin's first)."""
+    sim: str = "kinematic"
+    """kinematic (a free-flying camera); mujoco is not built yet."""
+    duration: float = 30.0
+    """Longest simulated time per run (s)."""
+    camera_rate: float = 30.0
+    fixed_period: float = 0.0
+    """Hold each twist this long (s) instead of the measured processing time; 0: measured."""
+    disturbance: bool = True
+    """Add the disturbance runs (Fig. 6): one per variant."""
+    disturbance_time: float = 10.0
+    """When the vine moves in those runs (s)."""
+    disturbance_translation: tuple[float, float, float] = (0.03, 0.0, 0.01)
+    disturbance_rotation: tuple[float, float, float] = (0.0, 0.0, 0.05)
+    guess_comparison: bool = True
+    """Add the runs with and without the initial guess (Fig. 4), point-to-plane from start 1."""
+    seed: int = 0
+    workers: int = 0
+    """Processes; 0: one per core."""
+
+    def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise InputError(f"unknown preset '{self.preset}'; choose one of: {', '.join(PRESETS)}")
+        for v in self.variants:
+            if v not in ICP_VARIANTS:
+                raise InputError(
+                    f"unknown ICP variant '{v}'; choose from: {', '.join(ICP_VARIANTS)}"
+                )
+        if self.sim != "kinematic":
+            raise InputError(
+                f"simulation '{self.sim}' is not available: only the kinematic simulation is built "
+                "(the MuJoCo Panda simulation is open work of the simulation issue)"
+            )
+
+
+@dataclass
+class _Job:
+    key: str
+    group: str
+    start_index: int
+    goal: list[list[float]]
+    start: list[list[float]]
+    config: dict[str, Any]
+    disturbance: dict[str, Any]
+    reference_seed: int
+    pose_id: str
+
+
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(mesh_path: str, camera: dict[str, Any], perception: dict[str, Any]) -> None:
+    from vinetwin.camera import CameraModel
+    from vinetwin.render.backends import get_backend
+
+    mesh = load_mesh(mesh_path)
+    cam = CameraModel.from_dict(camera)
+    _WORKER["backend"] = get_backend("open3d", mesh.vertices, mesh.faces, cam)
+    _WORKER["perception"] = PerceptionConfig.from_dict(perception)
+
+
+def _run_job(job: _Job) -> dict[str, Any]:
+    dist = job.disturbance
+    run: SimRun = simulate(
+        _WORKER["backend"],
+        np.asarray(job.goal),
+        np.asarray(job.start),
+        job.reference_seed,
+        _WORKER["perception"],
+        SimConfig.from_dict(job.config),
+        disturbance=Disturbance.from_dict(dist) if dist else None,
+        pose_id=job.pose_id,
+    )
+    return {
+        "key": job.key,
+        "group": job.group,
+        "start_index": job.start_index,
+        "summary": run.summary(),
+        "series": run.series(step=1),
+        "goal": job.goal,
+        "disturbance_time": dist.get("time", -1.0) if dist else -1.0,
+    }
+
+
+def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
+    """The runs of a campaign (start poses drawn here, so every variant shares them)."""
+    pose = twin.pose(cfg.pose) if cfg.pose else twin.poses[0]
+    cut = twin.cut_point(pose.cut_point).point
+    goal = np.asarray(pose.T_vine_camera)
+    ref_seed = pose_seed(cfg.seed, pose.id)
+    base = SimConfig(
+        duration=cfg.duration,
+        camera_rate=cfg.camera_rate,
+        fixed_period=cfg.fixed_period,
+        seed=cfg.seed,
+    )
+    starts = []
+    for i, (t, r) in enumerate(PRESETS[cfg.preset]):
+        rng = np.random.default_rng([cfg.seed, i])
+        starts.append(start_pose(goal, cut, t, r, rng, twin.camera, twin.perception.max_depth))
+
+    def job(key: str, group: str, i: int, sim: SimConfig, dist: Disturbance | None = None) -> _Job:
+        return _Job(key, group, i, goal.tolist(), starts[i].tolist(), sim.to_dict(),
+                    dist.to_dict() if dist else {}, ref_seed, pose.id)  # fmt: skip
+
+    jobs = [
+        job(f"grid/{i}/{v}", "grid", i, replace(base, variant=v))
+        for i in range(len(starts))
+        for v in cfg.variants
+    ]
+    if cfg.disturbance:
+        d = Disturbance(
+            time=cfg.disturbance_time,
+            translation=cfg.disturbance_translation,
+            rotation=cfg.disturbance_rotation,
+        )
+        long = replace(base, duration=max(cfg.duration, cfg.disturbance_time + 15.0))
+        jobs += [
+            job(f"disturbance/{v}", "disturbance", 0, replace(long, variant=v), d)
+            for v in cfg.variants
+        ]
+    if cfg.guess_comparison:
+        for g in ("kinematic", "identity"):
+            jobs.append(
+                job(f"guess/{g}", "guess", 0, replace(base, variant="point_to_plane", guess=g))
+            )
+    return jobs
+
+
+def run_campaign(
+    twin: Twin,
+    cfg: CampaignConfig,
+    out_dir: Path,
+    progress: Callable[[dict[str, Any], int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Runs the campaign and writes its report into out_dir; returns what campaign.json holds."""
+    jobs = plan(twin, cfg)
+    init = (str(twin.mesh_path), twin.camera.to_dict(), twin.perception.to_dict())
+    workers = cfg.workers if cfg.workers > 0 else (os.cpu_count() or 1)
+    workers = max(1, min(workers, len(jobs)))
+    results: list[dict[str, Any]] = []
+    if workers == 1:
+        _init_worker(*init)
+        for job in jobs:
+            results.append(_run_job(job))
+            if progress:
+                progress(results[-1], len(results), len(jobs))
+    else:
+        # each process renders with one thread: the processes share the cores
+        os.environ.update({k: "1" for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")})
+        with ProcessPoolExecutor(workers, mp.get_context("spawn"), _init_worker, init) as pool:
+            futures = [pool.submit(_run_job, j) for j in jobs]
+            for fut in as_completed(futures):
+                results.append(fut.result())
+                if progress:
+                    progress(results[-1], len(results), len(jobs))
+    order = {j.key: k for k, j in enumerate(jobs)}
+    results.sort(key=lambda r: order[r["key"]])
+    data = {
+        "twin": twin.name,
+        "config": cfg.to_dict(),
+        "starts": [list(s) for s in PRESETS[cfg.preset]],
+        "workers": workers,
+        "runs": results,
+    }
+    from vinetwin.servo import report
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(
+        out_dir / "campaign.json", json.dumps(data, indent=1, default=_jsonable) + "\n"
+    )
+    report.write_report(data, out_dir)
+    return data
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    raise TypeError(f"not JSON serialisable: {type(x)}")

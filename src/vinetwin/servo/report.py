@@ -1,0 +1,277 @@
+"""The campaign report: plots like the paper's (matplotlib, headless) and a Markdown and an HTML
+page with the table."""
+
+from __future__ import annotations
+
+import html
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin.twin.model import atomic_write_text
+
+COLORS = {
+    "point_to_point": "tab:blue",
+    "lm": "tab:orange",
+    "point_to_plane": "tab:green",
+    "symmetric": "tab:red",
+}
+FIGURES = (
+    (
+        "fig5_errors.png",
+        "Translation and rotation error against time, per start and variant (paper Fig. 5a-b).",
+    ),
+    (
+        "fig5_trajectories.png",
+        "Camera positions relative to the pruning pose (paper Fig. 5c, Fig. 8).",
+    ),
+    ("fig6_disturbance.png", "The vine moves during the run: error against time (paper Fig. 6)."),
+    (
+        "fig4_guess.png",
+        "Point-to-plane with and without the kinematic initial guess (paper Fig. 4).",
+    ),
+)
+
+
+def _fmt(x: Any, scale: float = 1.0, digits: int = 2) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return f"{x * scale:.{digits}f}"
+
+
+def table_rows(data: dict[str, Any]) -> list[dict[str, str]]:
+    """One row per grid run, with the paper's Table 1 figures beside ours for that preset."""
+    from vinetwin.servo.campaign import PAPER_NAMES, PAPER_TABLE1
+
+    rows = []
+    for r in data["runs"]:
+        if r["group"] != "grid":
+            continue
+        s = r["summary"]
+        i = r["start_index"]
+        paper = "-"
+        if data["config"]["preset"] == "table1":
+            p = PAPER_TABLE1[i][PAPER_NAMES[s["variant"]]]
+            paper = (
+                "did not converge"
+                if p is None
+                else f"{1000 * p[0]:.1f} mm, {p[1]:.3f} rad, {p[2]:.1f} s"
+            )
+        rows.append(
+            {
+                "start": f"{i + 1}: {s['start_translation']:.3f} m, {s['start_rotation']:.3f} rad",
+                "variant": s["variant"],
+                "final t (mm)": _fmt(s["final_translation"], 1000),
+                "final r (rad)": _fmt(s["final_rotation"], 1, 4),
+                "converged": "yes" if s["converged"] else "no",
+                "convergence (s)": _fmt(s["convergence_time"], 1, 1),
+                "loop (Hz)": _fmt(s["loop_rate_hz"], 1, 1),
+                "compute (ms)": _fmt(s["compute_ms"], 1, 1),
+                "refused frames": str(s["refused"]),
+                "paper (real robot)": paper,
+            }
+        )
+    return rows
+
+
+def other_rows(data: dict[str, Any], group: str) -> list[dict[str, str]]:
+    rows = []
+    for r in data["runs"]:
+        if r["group"] != group:
+            continue
+        s = r["summary"]
+        row = {
+            "run": r["key"],
+            "final t (mm)": _fmt(s["final_translation"], 1000),
+            "final r (rad)": _fmt(s["final_rotation"], 1, 4),
+            "converged": "yes" if s["converged"] else "no",
+            "convergence (s)": _fmt(s["convergence_time"], 1, 1),
+            "refused frames": str(s["refused"]),
+            "refusals": ", ".join(f"{k} x{v}" for k, v in s["refusal_reasons"].items()) or "-",
+        }
+        if group == "disturbance":
+            ct = s["convergence_time"]
+            row["recovered after (s)"] = _fmt(
+                None if ct is None else ct - r["disturbance_time"], 1, 1
+            )
+        rows.append(row)
+    return rows
+
+
+def _markdown_table(rows: list[dict[str, str]]) -> str:
+    if not rows:
+        return "(no runs)\n"
+    keys = list(rows[0])
+    out = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    out += ["| " + " | ".join(r[k] for k in keys) + " |" for r in rows]
+    return "\n".join(out) + "\n"
+
+
+def _html_table(rows: list[dict[str, str]]) -> str:
+    if not rows:
+        return "<p>(no runs)</p>"
+    keys = list(rows[0])
+    head = "".join(f"<th>{html.escape(k)}</th>" for k in keys)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(r[k])}</td>" for k in keys) + "</tr>" for r in rows
+    )
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _speed_line(data: dict[str, Any]) -> str:
+    runs = [r["summary"] for r in data["runs"]]
+    sim = sum(s["simulated_s"] for s in runs)
+    wall = sum(s["wall_s"] for s in runs)
+    return (
+        f"{len(runs)} runs, {sim:.0f} simulated s in {wall:.0f} s of process time "
+        f"({sim / wall:.2f} simulated s per process-second, {data['workers']} workers)."
+    )
+
+
+def write_report(data: dict[str, Any], out_dir: Path) -> None:
+    """Plots, report.md and report.html into out_dir."""
+    plot_errors(data, out_dir / FIGURES[0][0])
+    plot_trajectories(data, out_dir / FIGURES[1][0])
+    plot_group(data, "disturbance", out_dir / FIGURES[2][0])
+    plot_group(data, "guess", out_dir / FIGURES[3][0])
+    cfg = data["config"]
+    defs = (
+        "Final static error: median true error over the last 0.5 s. Converged: that error within "
+        "2 mm / 0.01 rad. Convergence time: the first time after which the error stays within "
+        "2 mm / 0.01 rad to the end of the run. Loop: frames processed per simulated second "
+        "(free-running: each twist is held until the next camera frame after processing ends)."
+    )
+    title = f"vinetwin campaign: {data['twin']}, preset {cfg['preset']}, {cfg['sim']} simulation"
+    md = [f"# {title}\n", defs + "\n", _speed_line(data) + "\n", "## Starts x variants\n"]
+    md.append(_markdown_table(table_rows(data)))
+    for group, name in (
+        ("disturbance", "Disturbance runs"),
+        ("guess", "With and without the initial guess"),
+    ):
+        md += [f"\n## {name}\n", _markdown_table(other_rows(data, group))]
+    md.append("\n## Figures\n")
+    md += [f"![{cap}]({fn})\n\n{cap}\n" for fn, cap in FIGURES]
+    atomic_write_text(out_dir / "report.md", "\n".join(md))
+    parts = [
+        f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
+        "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:collapse}"
+        "td,th{border:1px solid #ccc;padding:3px 6px;font-size:13px}img{max-width:100%}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1><p>{html.escape(defs)}</p><p>{html.escape(_speed_line(data))}</p>",
+        "<h2>Starts x variants</h2>",
+        _html_table(table_rows(data)),
+    ]
+    for group, name in (
+        ("disturbance", "Disturbance runs"),
+        ("guess", "With and without the initial guess"),
+    ):
+        parts += [f"<h2>{name}</h2>", _html_table(other_rows(data, group))]
+    parts.append("<h2>Figures</h2>")
+    parts += [
+        f"<figure><img src='{fn}' alt='{html.escape(cap)}'><figcaption>{html.escape(cap)}</figcaption></figure>"
+        for fn, cap in FIGURES
+    ]
+    parts.append("</body></html>")
+    atomic_write_text(out_dir / "report.html", "\n".join(parts))
+
+
+# ----------------------------------------------------------------------------- plots
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _error_axes(ax_t: Any, ax_r: Any, run: dict[str, Any], label: str, color: str | None) -> None:
+    s = run["series"]
+    t = np.asarray(s["t"])
+    ax_t.semilogy(
+        t, np.maximum(1000 * np.asarray(s["error_t"]), 1e-3), color=color, label=label, lw=1.2
+    )
+    ax_r.semilogy(t, np.maximum(np.asarray(s["error_r"]), 1e-5), color=color, label=label, lw=1.2)
+
+
+def _finish_error_axes(ax_t: Any, ax_r: Any) -> None:
+    ax_t.axhline(2.0, color="0.6", ls=":", lw=1)
+    ax_r.axhline(0.01, color="0.6", ls=":", lw=1)
+    ax_t.set_ylabel("translation error (mm)")
+    ax_r.set_ylabel("rotation error (rad)")
+    ax_r.set_xlabel("time (s)")
+    for ax in (ax_t, ax_r):
+        ax.grid(True, which="both", alpha=0.3)
+
+
+def plot_errors(data: dict[str, Any], path: Path) -> None:
+    plt = _plt()
+    n = len(data["starts"])
+    fig, axes = plt.subplots(2, n, figsize=(4.2 * n, 6.5), squeeze=False, sharex=False)
+    for r in data["runs"]:
+        if r["group"] != "grid":
+            continue
+        i = r["start_index"]
+        v = r["summary"]["variant"]
+        _error_axes(axes[0, i], axes[1, i], r, v, COLORS.get(v))
+    for i, (t, rr) in enumerate(data["starts"]):
+        axes[0, i].set_title(f"start {i + 1}: {t:.3f} m, {rr:.3f} rad")
+        _finish_error_axes(axes[0, i], axes[1, i])
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"{data['twin']}: error against time (dotted: 2 mm, 0.01 rad)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_trajectories(data: dict[str, Any], path: Path) -> None:
+    plt = _plt()
+    n = len(data["starts"])
+    fig = plt.figure(figsize=(max(4.5 * n, 7.0), 4.8))
+    for i in range(n):
+        ax = fig.add_subplot(1, n, i + 1, projection="3d")
+        for r in data["runs"]:
+            if r["group"] != "grid" or r["start_index"] != i:
+                continue
+            goal = np.asarray(r["goal"])
+            p = (np.asarray(r["series"]["position"]) - goal[:3, 3]) @ goal[:3, :3]  # goal frame
+            v = r["summary"]["variant"]
+            ax.plot(
+                1000 * p[:, 0], 1000 * p[:, 1], 1000 * p[:, 2], color=COLORS.get(v), label=v, lw=1.2
+            )
+            ax.scatter(*(1000 * p[0]), color="k", s=12)
+        ax.scatter([0], [0], [0], marker="*", color="gold", s=120, edgecolor="k", label="goal")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_zlabel("z (mm)")
+        ax.set_title(f"start {i + 1}")
+    fig.axes[0].legend(fontsize=7, loc="upper left")
+    fig.suptitle("camera paths in the goal camera frame (dot: start, star: goal)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_group(data: dict[str, Any], group: str, path: Path) -> None:
+    plt = _plt()
+    fig, (ax_t, ax_r) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+    runs = [r for r in data["runs"] if r["group"] == group]
+    for r in runs:
+        label = r["key"].split("/", 1)[1]
+        color = COLORS.get(label) if group == "disturbance" else None
+        _error_axes(ax_t, ax_r, r, label, color)
+    if group == "disturbance" and runs:
+        for ax in (ax_t, ax_r):
+            ax.axvline(runs[0]["disturbance_time"], color="k", ls="--", lw=1)
+    _finish_error_axes(ax_t, ax_r)
+    if runs:
+        ax_t.legend(fontsize=8)
+    titles = {
+        "disturbance": "the vine moves at the dashed line",
+        "guess": "point-to-plane with the kinematic guess (eq. 11) and from the identity",
+    }
+    ax_t.set_title(titles[group] if runs else f"{group}: no runs")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
