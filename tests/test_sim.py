@@ -14,6 +14,16 @@ from vinetwin.servo.campaign import PRESETS, CampaignConfig, run_campaign
 from vinetwin.servo.sim import Disturbance, SimConfig, simulate, start_pose
 
 
+def _goal_and_start(vine_views: VineViews, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The first pruning pose and a start 4 cm / 0.1 rad from it that sees the cut."""
+    twin = vine_views.twin
+    pose = twin.poses[0]
+    cut = twin.cut_point(pose.cut_point).point
+    rng = np.random.default_rng(seed)
+    start = start_pose(pose.T_vine_camera, cut, 0.04, 0.1, rng, twin.camera, 0.4)
+    return pose.T_vine_camera, start
+
+
 def test_start_poses_have_the_preset_errors_and_see_the_cut(vine_views: VineViews) -> None:
     twin = vine_views.twin
     pose = twin.poses[0]
@@ -33,12 +43,7 @@ def test_converges_then_recovers_from_the_vine_moving(vine_views: VineViews) -> 
     """Fig. 6 in small: converge from 4 cm / 0.1 rad, the vine moves 2 cm and 0.03 rad at 7 s,
     the servo refuses the jump, re-acquires it and converges again, within 2 mm / 0.01 rad."""
     twin = vine_views.twin
-    pose = twin.poses[0]
-    goal = pose.T_vine_camera
-    cut = twin.cut_point(pose.cut_point).point
-    start = start_pose(
-        goal, cut, 0.04, 0.1, np.random.default_rng(0), twin.camera, twin.perception.max_depth
-    )
+    goal, start = _goal_and_start(vine_views, seed=0)
     dist = Disturbance(time=7.0, translation=(0.02, 0.0, 0.0), rotation=(0.0, 0.03, 0.0))
     cfg = SimConfig(variant="symmetric", duration=14.0, settle=0.0, fixed_period=1 / 30)
     run = simulate(vine_views.backend, goal, start, 1, twin.perception, cfg, disturbance=dist)
@@ -60,12 +65,7 @@ def test_slow_processing_holds_each_twist_longer(vine_views: VineViews) -> None:
     """The free-running loop: a 0.25 s processing time means 4 frames a second, and the same
     gain then overshoots and oscillates more than at 30 Hz (the paper's argument for speed)."""
     twin = vine_views.twin
-    pose = twin.poses[0]
-    goal = pose.T_vine_camera
-    cut = twin.cut_point(pose.cut_point).point
-    start = start_pose(
-        goal, cut, 0.04, 0.1, np.random.default_rng(1), twin.camera, twin.perception.max_depth
-    )
+    goal, start = _goal_and_start(vine_views, seed=1)
     runs = {}
     for period in (1 / 30, 0.25):
         cfg = SimConfig(

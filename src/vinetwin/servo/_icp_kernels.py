@@ -13,6 +13,7 @@ Status codes: 0 converged, 1 iteration limit, 2 too few correspondences, 3 singu
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -43,6 +44,11 @@ class NNTree:
         self.child = child
         self.lo = lo
         self.hi = hi
+
+    @property
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """What the kernels take: (points, split_dim, split_val, child, lo, hi)."""
+        return (self.points, self.split_dim, self.split_val, self.child, self.lo, self.hi)
 
 
 @nb.njit(cache=True)
@@ -102,19 +108,11 @@ def _build_tree(
 
 @nb.njit(cache=True, nogil=True)
 def _nearest(
-    q: np.ndarray,
-    pts: np.ndarray,
-    split_dim: np.ndarray,
-    split_val: np.ndarray,
-    child: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    dmax: float,
-    stack: np.ndarray,
-    bound: np.ndarray,
+    q: np.ndarray, tree: Any, dmax: float, stack: np.ndarray, bound: np.ndarray
 ) -> tuple[int, float]:
     """Index (into the tree's points) and squared distance of the closest point within dmax;
-    (-1, inf) when none."""
+    (-1, inf) when none. `tree` is `NNTree.arrays`."""
+    pts, split_dim, split_val, child, lo, hi = tree
     best = -1
     best_d2 = dmax * dmax
     top = 0
@@ -156,12 +154,7 @@ def _nearest(
 def _associate_range(
     src: np.ndarray,
     T: np.ndarray,
-    pts: np.ndarray,
-    split_dim: np.ndarray,
-    split_val: np.ndarray,
-    child: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
+    tree: Any,
     dmax: float,
     i0: int,
     i1: int,
@@ -174,36 +167,37 @@ def _associate_range(
     for i in range(i0, i1):
         for a in range(3):
             q[i, a] = T[a, 0] * src[i, 0] + T[a, 1] * src[i, 1] + T[a, 2] * src[i, 2] + T[a, 3]
-        idx[i], d2[i] = _nearest(q[i], pts, split_dim, split_val, child, lo, hi, dmax, stack, bound)
+        idx[i], d2[i] = _nearest(q[i], tree, dmax, stack, bound)
+
+
+@nb.njit(cache=True, nogil=True)
+def _buffers(
+    src: np.ndarray, threads: int
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """Output arrays of an association and its split: (n, q, idx, d2, chunks, chunk size); one
+    chunk per thread above 256 points."""
+    n = src.shape[0]
+    chunks = max(threads, 1) if n > 256 else 1
+    return (
+        n,
+        np.empty((n, 3)),
+        np.empty(n, np.int64),
+        np.empty(n),
+        chunks,
+        (n + chunks - 1) // chunks,
+    )
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def associate(
-    src: np.ndarray,
-    T: np.ndarray,
-    pts: np.ndarray,
-    split_dim: np.ndarray,
-    split_val: np.ndarray,
-    child: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    dmax: float,
-    threads: int,
+    src: np.ndarray, T: np.ndarray, tree: Any, dmax: float, threads: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transforms src by T and finds each point's closest reference point within dmax.
     Returns (transformed points, tree-order reference index or -1, squared distance or inf).
     Split in one chunk per thread above 256 points."""
-    n = src.shape[0]
-    q = np.empty((n, 3))
-    idx = np.empty(n, np.int64)
-    d2 = np.empty(n)
-    chunks = max(threads, 1) if n > 256 else 1
-    size = (n + chunks - 1) // chunks
+    n, q, idx, d2, chunks, size = _buffers(src, threads)
     for c in nb.prange(chunks):
-        _associate_range(
-            src, T, pts, split_dim, split_val, child, lo, hi, dmax,
-            c * size, min(n, (c + 1) * size), q, idx, d2,
-        )  # fmt: skip
+        _associate_range(src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2)
     return q, idx, d2
 
 
@@ -434,13 +428,8 @@ def _well_posed(A: np.ndarray) -> bool:
 def register_level(
     src: np.ndarray,
     src_n: np.ndarray,
-    pts: np.ndarray,
+    tree: Any,
     nrm: np.ndarray,
-    split_dim: np.ndarray,
-    split_val: np.ndarray,
-    child: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
     use: np.ndarray,
     T0: np.ndarray,
     dmax: float,
@@ -454,14 +443,10 @@ def register_level(
     accelerate: bool,
 ) -> tuple[np.ndarray, int, int, int, float]:
     """One level of ICP from T0. Returns (T, status, iterations, pairs, rmse of the last
-    association)."""
+    association). `tree` is `NNTree.arrays`; `nrm` and `use` are in its point order."""
+    pts = tree[0]
     T = T0.copy()
-    n = src.shape[0]
-    q = np.empty((n, 3))
-    idx = np.empty(n, np.int64)
-    d2 = np.empty(n)
-    chunks = max(threads, 1) if n > 256 else 1
-    size = (n + chunks - 1) // chunks
+    n, q, idx, d2, chunks, size = _buffers(src, threads)
     hist = np.zeros((4, 4, 4))
     for k in range(4):
         hist[k] = T
@@ -477,10 +462,7 @@ def register_level(
     rmse = np.nan
     for it in range(1, max_iter + 1):
         for c in nb.prange(chunks):
-            _associate_range(
-                src, T, pts, split_dim, split_val, child, lo, hi, dmax,
-                c * size, min(n, (c + 1) * size), q, idx, d2,
-            )  # fmt: skip
+            _associate_range(src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2)
         for i in range(idx.shape[0]):
             if idx[i] >= 0 and not use[idx[i]]:
                 idx[i] = -1
@@ -557,8 +539,10 @@ def register_level(
 def _between(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """inv(A) @ B for rigid transforms."""
     Ai = np.eye(4)
-    Ai[:3, :3] = A[:3, :3].T
-    Ai[:3, 3] = -(A[:3, :3].T @ A[:3, 3])
+    for r in range(3):
+        for c in range(3):
+            Ai[r, c] = A[c, r]
+        Ai[r, 3] = -(A[0, r] * A[0, 3] + A[1, r] * A[1, 3] + A[2, r] * A[2, 3])
     return Ai @ B
 
 

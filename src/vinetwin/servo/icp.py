@@ -269,8 +269,8 @@ class ICP:
             t = lv.tree
             try:
                 T, status, it, pairs, _ = K.register_level(
-                    src, src_n, t.points, lv.normals, t.split_dim, t.split_val, t.child, t.lo,
-                    t.hi, lv.use, T, lv.dmax, code, cfg.max_iterations, tol_t, tol_r,
+                    src, src_n, t.arrays, lv.normals, lv.use, T, lv.dmax, code,
+                    cfg.max_iterations, tol_t, tol_r,
                     cfg.min_correspondences, cfg.huber_delta, _threads(), cfg.accelerate,
                 )  # fmt: skip
             except np.linalg.LinAlgError as exc:  # a safety net: the kernels test what they solve
@@ -281,9 +281,7 @@ class ICP:
         lv = self._levels[-1]
         src = current.points
         t = lv.tree
-        q, idx, d2 = K.associate(
-            src, T, t.points, t.split_dim, t.split_val, t.child, t.lo, t.hi, lv.dmax, _threads()
-        )
+        q, idx, d2 = K.associate(src, T, t.arrays, lv.dmax, _threads())
         ok = idx >= 0
         n_ok = int(ok.sum())
         result = ICPResult(
