@@ -125,3 +125,33 @@ def test_mujoco_campaign_is_refused_with_reason() -> None:
 
     with pytest.raises(InputError, match="only the kinematic simulation is built"):
         CampaignConfig(sim="mujoco")
+
+
+def test_validate_writes_the_map_and_resumes(sample_twin_dir: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from vinetwin.servo.validate import ValidateConfig, validate
+    from vinetwin.twin import Twin
+
+    root = tmp_path / "v.twin"
+    shutil.copytree(sample_twin_dir, root)
+    twin = Twin.load(root)
+    cfg = ValidateConfig(
+        variants=("symmetric",), poses=("p1",), starts=2, radius_translation=0.04,
+        radius_rotation=0.1, duration=8.0, workers=1,
+    )  # fmt: skip
+    calls: list[int] = []
+    summary = validate(twin, cfg, lambda r, done, total: calls.append(done))
+    cell = summary["poses"][0]["variants"]["symmetric"]
+    assert cell["success_rate"] == 1.0 and cell["basin_translation"] == pytest.approx(0.04)
+    for fn in ("p1.symmetric.json", "summary.md", "summary.json", "summary.png"):
+        assert (root / "validation" / fn).exists()
+    saved = Twin.load(root).pose("p1").extra["validation"]
+    assert saved["variants"]["symmetric"]["success_rate"] == 1.0
+    # resumable: unchanged inputs are not run again; a changed radius is
+    mtime = (root / "validation" / "p1.symmetric.json").stat().st_mtime_ns
+    calls.clear()
+    validate(Twin.load(root), cfg, lambda r, done, total: calls.append(done))
+    assert calls == [] and (root / "validation" / "p1.symmetric.json").stat().st_mtime_ns == mtime
+    validate(Twin.load(root), ValidateConfig(**{**cfg.to_dict(), "radius_translation": 0.03}))
+    assert (root / "validation" / "p1.symmetric.json").stat().st_mtime_ns != mtime

@@ -299,6 +299,59 @@ class Campaign:
             shutil.copyfile(out / "campaign.json", self.json)
 
 
+@dataclass(frozen=True, kw_only=True)
+class Validate:
+    """Check every pruning pose can be reached: closed-loop runs from stratified starts per pose
+    and ICP variant; success rate and convergence basin into TWIN/validation and twin.json."""
+
+    twin: Annotated[Path, tyro.conf.Positional]
+    """Twin folder."""
+    poses: tuple[str, ...] = ()
+    """Pose ids (default: all)."""
+    variants: tuple[VariantChoice, ...] = ("point_to_point", "lm", "point_to_plane", "symmetric")
+    """ICP variants to try."""
+    starts: int = 6
+    """Runs per pose and variant, from 1/N to N/N of the radii away."""
+    radius_translation: float = 0.10
+    """Farthest start (m)."""
+    radius_rotation: float = 0.30
+    """Farthest start (rad)."""
+    duration: float = 20.0
+    """Longest simulated time per run (s)."""
+    workers: int = 0
+    """Processes; 0: one per core."""
+    seed: int = 0
+    """Seed of the starts and the noise."""
+    force: bool = False
+    """Run again what is already validated with the same inputs."""
+    json: Path | None = None
+    """Also write the summary here."""
+
+    def run(self) -> None:
+        import json
+
+        from vinetwin.servo.validate import ValidateConfig, validate
+        from vinetwin.twin.model import Twin
+
+        twin = Twin.load(self.twin)
+        cfg = ValidateConfig(
+            variants=tuple(self.variants),
+            poses=self.poses,
+            starts=self.starts,
+            radius_translation=self.radius_translation,
+            radius_rotation=self.radius_rotation,
+            duration=self.duration,
+            seed=self.seed,
+            workers=self.workers,
+            force=self.force,
+        )
+        summary = _with_progress("validating", lambda progress: validate(twin, cfg, progress))
+        print((twin.root / "validation" / "summary.md").read_text())
+        if self.json:
+            self.json.parent.mkdir(parents=True, exist_ok=True)
+            self.json.write_text(json.dumps(summary, indent=1))
+
+
 def _print_campaign(data: dict[str, object]) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -404,6 +457,7 @@ COMMANDS: dict[str, type] = {
     "preview": Preview,
     "demo": Demo,
     "campaign": Campaign,
+    "validate": Validate,
 }
 
 

@@ -136,6 +136,11 @@ def _init_worker(mesh_path: str, camera: dict[str, Any], perception: dict[str, A
     _WORKER["perception"] = PerceptionConfig.from_dict(perception)
 
 
+def worker_backend() -> tuple[Any, PerceptionConfig]:
+    """The renderer and perception settings of this worker process."""
+    return _WORKER["backend"], _WORKER["perception"]
+
+
 def _run_job(job: _Job) -> dict[str, Any]:
     dist = job.disturbance
     run: SimRun = simulate(
@@ -204,6 +209,39 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
     return jobs
 
 
+def run_jobs(
+    twin: Twin,
+    jobs: list[Any],
+    workers: int,
+    progress: Callable[[dict[str, Any], int, int], None] | None = None,
+    fn: Callable[[Any], dict[str, Any]] | None = None,
+) -> tuple[list[dict[str, Any]], int]:
+    """Runs simulation jobs (`fn`, default one closed-loop run per job) in this process
+    (workers 1) or in spawned processes (0: one per core), each with its own renderer. Returns
+    the results in completion order and the number of workers used."""
+    fn = fn or _run_job
+    init = (str(twin.mesh_path), twin.camera.to_dict(), twin.perception.to_dict())
+    workers = workers if workers > 0 else (os.cpu_count() or 1)
+    workers = max(1, min(workers, len(jobs)))
+    results: list[dict[str, Any]] = []
+    if workers == 1:
+        _init_worker(*init)
+        for job in jobs:
+            results.append(fn(job))
+            if progress:
+                progress(results[-1], len(results), len(jobs))
+        return results, 1
+    # each process renders with one thread: the processes share the cores
+    os.environ.update({k: "1" for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")})
+    with ProcessPoolExecutor(workers, mp.get_context("spawn"), _init_worker, init) as pool:
+        futures = [pool.submit(fn, j) for j in jobs]
+        for fut in as_completed(futures):
+            results.append(fut.result())
+            if progress:
+                progress(results[-1], len(results), len(jobs))
+    return results, workers
+
+
 def run_campaign(
     twin: Twin,
     cfg: CampaignConfig,
@@ -212,25 +250,7 @@ def run_campaign(
 ) -> dict[str, Any]:
     """Runs the campaign and writes its report into out_dir; returns what campaign.json holds."""
     jobs = plan(twin, cfg)
-    init = (str(twin.mesh_path), twin.camera.to_dict(), twin.perception.to_dict())
-    workers = cfg.workers if cfg.workers > 0 else (os.cpu_count() or 1)
-    workers = max(1, min(workers, len(jobs)))
-    results: list[dict[str, Any]] = []
-    if workers == 1:
-        _init_worker(*init)
-        for job in jobs:
-            results.append(_run_job(job))
-            if progress:
-                progress(results[-1], len(results), len(jobs))
-    else:
-        # each process renders with one thread: the processes share the cores
-        os.environ.update({k: "1" for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")})
-        with ProcessPoolExecutor(workers, mp.get_context("spawn"), _init_worker, init) as pool:
-            futures = [pool.submit(_run_job, j) for j in jobs]
-            for fut in as_completed(futures):
-                results.append(fut.result())
-                if progress:
-                    progress(results[-1], len(results), len(jobs))
+    results, workers = run_jobs(twin, jobs, cfg.workers, progress)
     order = {j.key: k for k, j in enumerate(jobs)}
     results.sort(key=lambda r: order[r["key"]])
     data = {
