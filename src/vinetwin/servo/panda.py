@@ -1,0 +1,215 @@
+"""A Franka Emika Panda in MuJoCo with the D405 on its hand, driven by camera twists.
+
+`PandaArm()` loads vinetwin's own model (`servo/assets/panda/`: `panda.xml` written from Franka's
+published kinematics, joint position and velocity limits, primitive collision shapes, a `home`
+keyframe and a `flange` site; `scene.xml` adds a floor). `PandaArm("path/to/franka_emika_panda")`
+loads the MuJoCo Menagerie's Panda instead (its `scene.xml`, or any MJCF file given). Either way
+vinetwin adds, with MjSpec:
+
+- a `flange` site on `link7` (0.107 m along its z axis) when the model has none;
+- the camera: a site `d405` at `T_flange_camera` (OpenCV optical frame) and a MuJoCo camera
+  `d405` (OpenGL convention) for rendering in MuJoCo;
+- the vine mesh as a static body at `T_base_vine`, which can collide with the arm.
+
+Control (`move`): the camera twist, expressed in the camera frame, becomes a world twist at the
+camera site; joint velocities come from the site's 6x7 Jacobian through a damped pseudo-inverse,
+scaled down as a whole to the joint velocity limits, with joints at a position limit not pushed
+further. The joints integrate those velocities exactly (a joint velocity controller that tracks
+perfectly, as Franka's own does closely); `step_physics` runs MuJoCo's dynamics with the position
+actuators holding the current joints, for checking that a scene steps cleanly.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin import _lazy
+from vinetwin.camera import CameraModel
+from vinetwin.conventions import mujoco_camera_pos_quat, mujoco_fovy_deg, quat_wxyz_from_matrix
+from vinetwin.errors import InputError
+from vinetwin.frames import Array, make_pose, se3_log
+from vinetwin.twin.model import DEFAULT_T_FLANGE_CAMERA
+
+PANDA_DIR = Path(__file__).resolve().parent / "assets" / "panda"
+ARM_JOINTS = tuple(f"joint{i}" for i in range(1, 8))
+#: Franka's published joint velocity limits (rad/s), used when a model does not carry them.
+VELOCITY_LIMITS = (2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61)
+FLANGE_OFFSET = 0.107
+
+
+def _wxyz(R: Array) -> list[float]:
+    return [float(v) for v in quat_wxyz_from_matrix(R)]
+
+
+class PandaArm:
+    """A Panda (vinetwin's or the Menagerie's) carrying the D405, in a MuJoCo scene with the vine."""
+
+    def __init__(
+        self,
+        model: str | Path | None = None,
+        *,
+        T_flange_camera: Any = None,
+        camera: CameraModel | None = None,
+        vine: tuple[Any, Any] | None = None,
+        T_base_vine: Any = None,
+        damping: float = 0.02,
+    ) -> None:
+        mj = _lazy.mujoco()
+        path = Path(model) if model else PANDA_DIR / "scene.xml"
+        if path.is_dir():
+            path = path / "scene.xml"
+        if not path.exists():
+            raise InputError(f"robot model not found: {path}")
+        spec = mj.MjSpec.from_file(str(path))
+        try:
+            link7 = spec.body("link7")
+        except Exception:
+            link7 = None
+        if link7 is None:
+            raise InputError(f"{path}: no body 'link7' (not a Panda model?)")
+        T_fc = np.asarray(DEFAULT_T_FLANGE_CAMERA if T_flange_camera is None else T_flange_camera, float)
+        if spec.site("flange") is None:
+            link7.add_site(name="flange", pos=[0, 0, FLANGE_OFFSET], size=[0.01, 0, 0])
+        T7c = make_pose(t=[0, 0, FLANGE_OFFSET]) @ T_fc
+        link7.add_site(name="d405", pos=T7c[:3, 3].tolist(), quat=_wxyz(T7c[:3, :3]), size=[0.008, 0, 0])
+        if camera is not None:
+            pos, quat = mujoco_camera_pos_quat(T7c)
+            link7.add_camera(name="d405", pos=list(pos), quat=list(quat), fovy=mujoco_fovy_deg(camera.fy, camera.height))
+        self.T_base_vine = np.eye(4) if T_base_vine is None else np.asarray(T_base_vine, float)
+        if vine is not None:
+            V = np.asarray(vine[0], dtype=np.float64)
+            F = np.asarray(vine[1], dtype=np.int32)
+            spec.add_mesh(name="vine", uservert=V.ravel().tolist(), userface=F.ravel().tolist())
+            body = spec.worldbody.add_body(
+                name="vine", pos=self.T_base_vine[:3, 3].tolist(), quat=_wxyz(self.T_base_vine[:3, :3])
+            )
+            body.add_geom(
+                type=mj.mjtGeom.mjGEOM_MESH, meshname="vine", contype=0, conaffinity=1,
+                rgba=[0.45, 0.3, 0.2, 1],
+            )  # fmt: skip
+        self.model = spec.compile()
+        self.data = mj.MjData(self.model)
+        self._mj = mj
+        m = self.model
+        self.joint_ids = [m.joint(n).id for n in ARM_JOINTS]
+        self.qadr = np.array([m.jnt_qposadr[j] for j in self.joint_ids])
+        self.dadr = np.array([m.jnt_dofadr[j] for j in self.joint_ids])
+        self.lower = np.array([m.jnt_range[j][0] for j in self.joint_ids])
+        self.upper = np.array([m.jnt_range[j][1] for j in self.joint_ids])
+        try:
+            self.vmax = np.asarray(m.numeric("velocity_limits").data, float)[:7]
+        except KeyError:
+            self.vmax = np.asarray(VELOCITY_LIMITS)
+        self.site = m.site("d405").id
+        self.damping = damping
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Back to the `home` keyframe (or zeros)."""
+        mj = self._mj
+        if self.model.nkey > 0:
+            mj.mj_resetDataKeyframe(self.model, self.data, 0)
+        else:
+            mj.mj_resetData(self.model, self.data)
+        mj.mj_forward(self.model, self.data)
+
+    @property
+    def q(self) -> Array:
+        return self.data.qpos[self.qadr].copy()
+
+    def set_q(self, q: Any) -> None:
+        self.data.qpos[self.qadr] = np.clip(np.asarray(q, float), self.lower, self.upper)
+        self._mj.mj_kinematics(self.model, self.data)
+        self._mj.mj_comPos(self.model, self.data)
+
+    def pose(self) -> Array:
+        """T_base_camera: the D405's optical frame (OpenCV) in the robot base."""
+        return make_pose(self.data.site_xmat[self.site].reshape(3, 3), self.data.site_xpos[self.site])
+
+    # ------------------------------------------------------------------ control
+    def joint_velocities(self, twist: Any) -> Array:
+        """Joint velocities for a camera twist (v, omega) in the camera frame."""
+        mj = self._mj
+        R = self.data.site_xmat[self.site].reshape(3, 3)
+        xi = np.concatenate([R @ np.asarray(twist, float)[:3], R @ np.asarray(twist, float)[3:]])
+        jacp = np.zeros((3, self.model.nv))
+        jacr = np.zeros((3, self.model.nv))
+        mj.mj_jacSite(self.model, self.data, jacp, jacr, self.site)
+        J = np.vstack([jacp, jacr])[:, self.dadr]
+        q = self.q
+        free = np.ones(7, bool)
+        qdot = np.zeros(7)
+        for _ in range(3):  # joints at a limit that the solution pushes outward are frozen
+            Jf = J[:, free]
+            qdot = np.zeros(7)
+            qdot[free] = Jf.T @ np.linalg.solve(Jf @ Jf.T + self.damping**2 * np.eye(6), xi)
+            blocked = ((q <= self.lower + 1e-4) & (qdot < 0)) | ((q >= self.upper - 1e-4) & (qdot > 0))
+            if not (blocked & free).any():
+                break
+            free &= ~blocked
+        scale = float(np.max(np.abs(qdot) / self.vmax))
+        return qdot / scale if scale > 1 else qdot
+
+    def move(self, twist: Any, dt: float) -> None:
+        """Applies the camera twist for dt seconds through the joints."""
+        self.set_q(self.q + self.joint_velocities(twist) * dt)
+
+    def reach(
+        self, T_base_camera: Any, iterations: int = 300, tol: float = 1e-4, seeds: int = 24
+    ) -> tuple[bool, float, float]:
+        """Sets the joints so the camera is at T_base_camera: damped least squares from home,
+        then from seeded random configurations within the limits. Returns (reached within
+        1 mm / 0.01 rad, translation error m, rotation error rad) of the best try."""
+        from vinetwin.frames import invert, pose_error
+
+        target = np.asarray(T_base_camera, float)
+        rng = np.random.default_rng(0)
+        self.reset()
+        starts = [self.q] + [rng.uniform(self.lower, self.upper) for _ in range(seeds)]
+        best: tuple[float, Array] = (np.inf, starts[0])
+        for q0 in starts:
+            self.set_q(q0)
+            for _ in range(iterations):
+                err = se3_log(invert(self.pose()) @ target)
+                nt, nr = float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:]))
+                if nt < tol and nr < tol:
+                    break
+                # bounded steps: at most 5 cm and 0.2 rad of camera motion each
+                self.move(err * min(1.0, 0.05 / max(nt, 1e-12), 0.2 / max(nr, 1e-12)), 1.0)
+            dt, dr = pose_error(self.pose(), target)
+            if dt + 0.1 * dr < best[0]:
+                best = (dt + 0.1 * dr, self.q)
+            if dt < 1e-3 and dr < 1e-2:
+                break
+        self.set_q(best[1])
+        dt, dr = pose_error(self.pose(), target)
+        return bool(dt < 1e-3 and dr < 1e-2), dt, dr
+
+    # ------------------------------------------------------------------ physics
+    def step_physics(self, steps: int) -> list[str]:
+        """Runs MuJoCo's dynamics with the actuators holding the current joints; returns the
+        warnings MuJoCo raised (empty when clean)."""
+        mj = self._mj
+        if self.model.nu >= 7:
+            self.data.ctrl[:7] = self.q
+        for _ in range(steps):
+            mj.mj_step(self.model, self.data)
+        return [
+            str(mj.mjtWarning(i)).split(".")[-1]
+            for i in range(len(self.data.warning))
+            if self.data.warning[i].number > 0
+        ]
+
+
+def goal_placement(goal_vine_camera: Any, position: Any = (0.45, 0.0, 0.40)) -> Array:
+    """T_base_vine that puts a pruning pose's camera at `position` in the robot base, looking
+    forward (+x) with the image's down towards the floor: a pose the arm reaches comfortably."""
+    R = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera axes in base
+    T_base_goal = make_pose(R, position)
+    from vinetwin.frames import invert
+
+    return T_base_goal @ invert(np.asarray(goal_vine_camera, float))
