@@ -120,11 +120,11 @@ def test_campaign_writes_every_cell_and_plot(vine_views: VineViews, tmp_path: Pa
         assert "-" not in cells[:-1] and cells[-1] == "-", cells
 
 
-def test_mujoco_campaign_is_refused_with_reason() -> None:
+def test_unknown_simulation_is_named() -> None:
     from vinetwin.errors import InputError
 
-    with pytest.raises(InputError, match="only the kinematic simulation is built"):
-        CampaignConfig(sim="mujoco")
+    with pytest.raises(InputError, match="choose kinematic or mujoco"):
+        CampaignConfig(sim="gazebo")
 
 
 def test_validate_writes_the_map_and_resumes(sample_twin_dir: Path, tmp_path: Path) -> None:

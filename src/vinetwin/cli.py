@@ -246,7 +246,10 @@ class Campaign:
     preset: Literal["table1", "table2", "quick"] = "table1"
     """Starts: the paper's Table 1 (4), Table 2 (6), or one close start (quick)."""
     sim: Literal["kinematic", "mujoco"] = "kinematic"
-    """Simulation: a free-flying camera (kinematic); mujoco is not built yet."""
+    """Simulation: a free-flying camera (kinematic) or the D405 on a MuJoCo Panda (mujoco)."""
+    robot: str = ""
+    """With --sim mujoco: a Panda model folder (holding scene.xml, e.g. MuJoCo Menagerie's
+    franka_emika_panda) or MJCF file; default: vinetwin's own Panda."""
     variants: tuple[VariantChoice, ...] = ("point_to_point", "lm", "point_to_plane", "symmetric")
     """ICP variants to run."""
     pose: str = ""
@@ -282,6 +285,7 @@ class Campaign:
             variants=tuple(self.variants),
             pose=self.pose,
             sim=self.sim,
+            robot=self.robot,
             duration=self.duration,
             camera_rate=self.camera_rate,
             fixed_period=self.fixed_period,
@@ -367,9 +371,11 @@ def _print_campaign(data: dict[str, object]) -> None:
         if not rows:
             continue
         keys = [k for k in rows[0] if k != "refusals"]
+        if all(r.get("paper (real robot)", "") == "-" for r in rows):
+            keys = [k for k in keys if k != "paper (real robot)"]
         table = Table(*keys, title=title)
         for r in rows:
-            table.add_row(*(r[k] for k in keys))
+            table.add_row(*(r[k].split(":")[0] if k == "start" else r[k] for k in keys))
         con.print(table)
 
 

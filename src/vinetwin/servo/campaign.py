@@ -77,7 +77,10 @@ class CampaignConfig(JsonFields):
     pose: str = ""
     """Pruning pose to servo to (default: the twin's first)."""
     sim: str = "kinematic"
-    """kinematic (a free-flying camera); mujoco is not built yet."""
+    """kinematic (a free-flying camera) or mujoco (the D405 on a Panda's hand)."""
+    robot: str = ""
+    """With mujoco: the Panda model (a folder holding scene.xml, or an MJCF file); default:
+    vinetwin's own."""
     duration: float = 30.0
     """Longest simulated time per run (s)."""
     camera_rate: float = 30.0
@@ -103,11 +106,8 @@ class CampaignConfig(JsonFields):
                 raise InputError(
                     f"unknown ICP variant '{v}'; choose from: {', '.join(ICP_VARIANTS)}"
                 )
-        if self.sim != "kinematic":
-            raise InputError(
-                f"simulation '{self.sim}' is not available: only the kinematic simulation is built "
-                "(the MuJoCo Panda simulation is open work of the simulation issue)"
-            )
+        if self.sim not in ("kinematic", "mujoco"):
+            raise InputError(f"unknown simulation '{self.sim}'; choose kinematic or mujoco")
 
 
 @dataclass
@@ -121,16 +121,22 @@ class _Job:
     disturbance: dict[str, Any]
     reference_seed: int
     pose_id: str
+    robot: str | None = None
+    """None: kinematic camera; "" vinetwin's Panda; else a Panda model path."""
 
 
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(mesh_path: str, camera: dict[str, Any], perception: dict[str, Any]) -> None:
+def _init_worker(
+    mesh_path: str, camera: dict[str, Any], perception: dict[str, Any], T_flange_camera: list[Any]
+) -> None:
     from vinetwin.camera import CameraModel
     from vinetwin.render.backends import get_backend
 
     mesh = load_mesh(mesh_path)
+    _WORKER["mesh"] = mesh
+    _WORKER["T_flange_camera"] = np.asarray(T_flange_camera)
     cam = CameraModel.from_dict(camera)
     _WORKER["backend"] = get_backend("open3d", mesh.vertices, mesh.faces, cam)
     _WORKER["perception"] = PerceptionConfig.from_dict(perception)
@@ -139,6 +145,23 @@ def _init_worker(mesh_path: str, camera: dict[str, Any], perception: dict[str, A
 def worker_backend() -> tuple[Any, PerceptionConfig]:
     """The renderer and perception settings of this worker process."""
     return _WORKER["backend"], _WORKER["perception"]
+
+
+def worker_arm(robot: str | None, goal: Any) -> Any:
+    """This worker's Panda (None for the kinematic camera), its scene holding the vine placed so
+    the goal is comfortably reachable."""
+    if robot is None:
+        return None
+    from vinetwin.servo.panda import PandaArm, goal_placement
+
+    mesh = _WORKER["mesh"]
+    return PandaArm(
+        robot or None,
+        T_flange_camera=_WORKER["T_flange_camera"],
+        camera=_WORKER["backend"].camera,
+        vine=(mesh.vertices, mesh.faces),
+        T_base_vine=goal_placement(goal),
+    )
 
 
 def _run_job(job: _Job) -> dict[str, Any]:
@@ -152,6 +175,7 @@ def _run_job(job: _Job) -> dict[str, Any]:
         SimConfig.from_dict(job.config),
         disturbance=Disturbance.from_dict(dist) if dist else None,
         pose_id=job.pose_id,
+        arm=worker_arm(job.robot, np.asarray(job.goal)),
     )
     return {
         "key": job.key,
@@ -176,6 +200,7 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
         fixed_period=cfg.fixed_period,
         seed=cfg.seed,
     )
+    robot = None if cfg.sim == "kinematic" else cfg.robot
     starts = []
     for i, (t, r) in enumerate(PRESETS[cfg.preset]):
         rng = np.random.default_rng([cfg.seed, i])
@@ -183,7 +208,7 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
 
     def job(key: str, group: str, i: int, sim: SimConfig, dist: Disturbance | None = None) -> _Job:
         return _Job(key, group, i, goal.tolist(), starts[i].tolist(), sim.to_dict(),
-                    dist.to_dict() if dist else {}, ref_seed, pose.id)  # fmt: skip
+                    dist.to_dict() if dist else {}, ref_seed, pose.id, robot)  # fmt: skip
 
     jobs = [
         job(f"grid/{i}/{v}", "grid", i, replace(base, variant=v))
@@ -220,7 +245,12 @@ def run_jobs(
     (workers 1) or in spawned processes (0: one per core), each with its own renderer. Returns
     the results in completion order and the number of workers used."""
     fn = fn or _run_job
-    init = (str(twin.mesh_path), twin.camera.to_dict(), twin.perception.to_dict())
+    init = (
+        str(twin.mesh_path),
+        twin.camera.to_dict(),
+        twin.perception.to_dict(),
+        np.asarray(twin.T_flange_camera).tolist(),
+    )
     workers = workers if workers > 0 else (os.cpu_count() or 1)
     workers = max(1, min(workers, len(jobs)))
     results: list[dict[str, Any]] = []

@@ -70,21 +70,32 @@ class PandaArm:
             link7 = None
         if link7 is None:
             raise InputError(f"{path}: no body 'link7' (not a Panda model?)")
-        T_fc = np.asarray(DEFAULT_T_FLANGE_CAMERA if T_flange_camera is None else T_flange_camera, float)
+        T_fc = np.asarray(
+            DEFAULT_T_FLANGE_CAMERA if T_flange_camera is None else T_flange_camera, float
+        )
         if spec.site("flange") is None:
             link7.add_site(name="flange", pos=[0, 0, FLANGE_OFFSET], size=[0.01, 0, 0])
         T7c = make_pose(t=[0, 0, FLANGE_OFFSET]) @ T_fc
-        link7.add_site(name="d405", pos=T7c[:3, 3].tolist(), quat=_wxyz(T7c[:3, :3]), size=[0.008, 0, 0])
+        link7.add_site(
+            name="d405", pos=T7c[:3, 3].tolist(), quat=_wxyz(T7c[:3, :3]), size=[0.008, 0, 0]
+        )
         if camera is not None:
             pos, quat = mujoco_camera_pos_quat(T7c)
-            link7.add_camera(name="d405", pos=list(pos), quat=list(quat), fovy=mujoco_fovy_deg(camera.fy, camera.height))
+            link7.add_camera(
+                name="d405",
+                pos=list(pos),
+                quat=list(quat),
+                fovy=mujoco_fovy_deg(camera.fy, camera.height),
+            )
         self.T_base_vine = np.eye(4) if T_base_vine is None else np.asarray(T_base_vine, float)
         if vine is not None:
             V = np.asarray(vine[0], dtype=np.float64)
             F = np.asarray(vine[1], dtype=np.int32)
             spec.add_mesh(name="vine", uservert=V.ravel().tolist(), userface=F.ravel().tolist())
             body = spec.worldbody.add_body(
-                name="vine", pos=self.T_base_vine[:3, 3].tolist(), quat=_wxyz(self.T_base_vine[:3, :3])
+                name="vine",
+                pos=self.T_base_vine[:3, 3].tolist(),
+                quat=_wxyz(self.T_base_vine[:3, :3]),
             )
             body.add_geom(
                 type=mj.mjtGeom.mjGEOM_MESH, meshname="vine", contype=0, conaffinity=1,
@@ -128,7 +139,9 @@ class PandaArm:
 
     def pose(self) -> Array:
         """T_base_camera: the D405's optical frame (OpenCV) in the robot base."""
-        return make_pose(self.data.site_xmat[self.site].reshape(3, 3), self.data.site_xpos[self.site])
+        return make_pose(
+            self.data.site_xmat[self.site].reshape(3, 3), self.data.site_xpos[self.site]
+        )
 
     # ------------------------------------------------------------------ control
     def joint_velocities(self, twist: Any) -> Array:
@@ -147,7 +160,9 @@ class PandaArm:
             Jf = J[:, free]
             qdot = np.zeros(7)
             qdot[free] = Jf.T @ np.linalg.solve(Jf @ Jf.T + self.damping**2 * np.eye(6), xi)
-            blocked = ((q <= self.lower + 1e-4) & (qdot < 0)) | ((q >= self.upper - 1e-4) & (qdot > 0))
+            blocked = ((q <= self.lower + 1e-4) & (qdot < 0)) | (
+                (q >= self.upper - 1e-4) & (qdot > 0)
+            )
             if not (blocked & free).any():
                 break
             free &= ~blocked
@@ -205,11 +220,15 @@ class PandaArm:
         ]
 
 
-def goal_placement(goal_vine_camera: Any, position: Any = (0.45, 0.0, 0.40)) -> Array:
+def goal_placement(
+    goal_vine_camera: Any, position: Any = (0.5, 0.0, 0.35), pitch: float = 0.6
+) -> Array:
     """T_base_vine that puts a pruning pose's camera at `position` in the robot base, looking
-    forward (+x) with the image's down towards the floor: a pose the arm reaches comfortably."""
-    R = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera axes in base
-    T_base_goal = make_pose(R, position)
+    forward (+x) and `pitch` rad down, the image's x axis to the robot's right: a pose the arm
+    reaches with its joints away from their limits, and with room around it for the starts."""
     from vinetwin.frames import invert
 
-    return T_base_goal @ invert(np.asarray(goal_vine_camera, float))
+    z = np.array([np.cos(pitch), 0.0, -np.sin(pitch)])
+    x = np.array([0.0, -1.0, 0.0])
+    R = np.column_stack([x, np.cross(z, x), z])
+    return make_pose(R, position) @ invert(np.asarray(goal_vine_camera, float))

@@ -41,6 +41,11 @@ def _fmt(x: Any, scale: float = 1.0, digits: int = 2) -> str:
     return f"{x * scale:.{digits}f}"
 
 
+def _conv(s: dict[str, Any]) -> str:
+    """The convergence time, or why there is none."""
+    return "never" if s["convergence_time"] is None else f"{s['convergence_time']:.1f}"
+
+
 def table_rows(data: dict[str, Any]) -> list[dict[str, str]]:
     """One row per grid run, with the paper's Table 1 figures beside ours for that preset."""
     from vinetwin.servo.campaign import PAPER_NAMES, PAPER_TABLE1
@@ -66,7 +71,7 @@ def table_rows(data: dict[str, Any]) -> list[dict[str, str]]:
                 "final t (mm)": _fmt(s["final_translation"], 1000),
                 "final r (rad)": _fmt(s["final_rotation"], 1, 4),
                 "converged": "yes" if s["converged"] else "no",
-                "convergence (s)": _fmt(s["convergence_time"], 1, 1),
+                "convergence (s)": _conv(s),
                 "loop (Hz)": _fmt(s["loop_rate_hz"], 1, 1),
                 "compute (ms)": _fmt(s["compute_ms"], 1, 1),
                 "refused frames": str(s["refused"]),
@@ -87,7 +92,7 @@ def other_rows(data: dict[str, Any], group: str) -> list[dict[str, str]]:
             "final t (mm)": _fmt(s["final_translation"], 1000),
             "final r (rad)": _fmt(s["final_rotation"], 1, 4),
             "converged": "yes" if s["converged"] else "no",
-            "convergence (s)": _fmt(s["convergence_time"], 1, 1),
+            "convergence (s)": _conv(s),
             "refused frames": str(s["refused"]),
             "refusals": ", ".join(f"{k} x{v}" for k, v in s["refusal_reasons"].items()) or "-",
         }

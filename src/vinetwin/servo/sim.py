@@ -239,8 +239,14 @@ def simulate(
     sensor: SensorConfig | None = None,
     pose_id: str = "",
     safety: SafetyConfig | None = None,
+    arm: Any = None,
 ) -> SimRun:
-    """One closed-loop run from `start` to `goal` (camera poses in the vine frame)."""
+    """One closed-loop run from `start` to `goal` (camera poses in the vine frame).
+
+    With `arm` (a `servo.panda.PandaArm` whose scene holds the vine at `arm.T_base_vine`), the
+    camera is the D405 on the Panda's hand: the arm first reaches the start pose (a start it
+    cannot reach raises InputError), then each twist drives its joints. Without it the camera
+    flies freely."""
     cfg = config
     camera = backend.camera
     sensor = sensor or SensorConfig()
@@ -267,15 +273,24 @@ def simulate(
     servo.reset(invert(believed) @ start)
     run = SimRun(cfg, pose_id, np.asarray(goal, float), np.asarray(start, float), dist)
     period = 1.0 / cfg.camera_rate
-    T = np.asarray(start, dtype=np.float64).copy()
+    T_base_vine = np.eye(4) if arm is None else np.asarray(arm.T_base_vine, float)
+    if arm is not None:
+        ok, dt_, dr_ = arm.reach(T_base_vine @ start)
+        if not ok:
+            raise InputError(
+                f"the arm cannot reach the start pose ({1000 * dt_:.1f} mm, {dr_:.3f} rad short)"
+            )
+    T = np.asarray(start, dtype=np.float64).copy()  # camera in the vine's original frame
     t = 0.0
     at_goal_since: float | None = None
     wall0 = time.perf_counter()
     while t <= cfg.duration:
+        if arm is not None:
+            T = invert(T_base_vine) @ arm.pose()
         M = dist.vine_motion(t)
         T_rel = invert(M) @ T  # the camera relative to the (moved) vine
         depth = apply_d405_model(backend.render(T_rel), camera, rng, sensor)
-        r = servo.step_depth(depth, stamp=t, T_base_camera=T)
+        r = servo.step_depth(depth, stamp=t, T_base_camera=T_base_vine @ T)
         compute = sum(r.timings.values())
         et, er = pose_error(T_rel, goal)
         run.t.append(t)
@@ -301,7 +316,10 @@ def simulate(
             if cfg.fixed_period > 0
             else period * max(1, math.ceil(compute / period))
         )
-        T = T @ se3_exp(r.twist * hold)
+        if arm is None:
+            T = T @ se3_exp(r.twist * hold)
+        else:
+            arm.move(r.twist, hold)
         t += hold
     run.wall = time.perf_counter() - wall0
     return run

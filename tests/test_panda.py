@@ -1,0 +1,152 @@
+"""The MuJoCo Panda: kinematics against Franka's DH parameters, the Jacobian control, joint limits,
+every scene stepping cleanly, the Menagerie Panda servoing."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tests.conftest import VineViews, shared
+from vinetwin import _lazy
+from vinetwin import frames as fr
+from vinetwin.servo.panda import PANDA_DIR, PandaArm, goal_placement
+from vinetwin.servo.sim import SimConfig, simulate, start_pose
+
+# Franka's published (modified) DH parameters: a, d, alpha per joint, then the flange
+DH = [
+    (0.0, 0.333, 0.0),
+    (0.0, 0.0, -math.pi / 2),
+    (0.0, 0.316, math.pi / 2),
+    (0.0825, 0.0, math.pi / 2),
+    (-0.0825, 0.384, -math.pi / 2),
+    (0.0, 0.0, math.pi / 2),
+    (0.088, 0.0, math.pi / 2),
+]
+
+
+def dh_flange(q: np.ndarray) -> np.ndarray:
+    def link(a: float, d: float, al: float, th: float) -> np.ndarray:
+        ca, sa, ct, st = math.cos(al), math.sin(al), math.cos(th), math.sin(th)
+        return np.array(
+            [
+                [ct, -st, 0, a],
+                [st * ca, ct * ca, -sa, -d * sa],
+                [st * sa, ct * sa, ca, d * ca],
+                [0, 0, 0, 1],
+            ]
+        )
+
+    T = np.eye(4)
+    for (a, d, al), th in zip(DH, q, strict=True):
+        T = T @ link(a, d, al, th)
+    return T @ link(0.0, 0.107, 0.0, 0.0)
+
+
+def test_forward_kinematics_match_franka_dh() -> None:
+    arm = PandaArm()
+    m, d = arm.model, arm.data
+    flange = m.site("flange").id
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = rng.uniform(arm.lower, arm.upper)
+        arm.set_q(q)
+        T = dh_flange(q)
+        np.testing.assert_allclose(d.site_xpos[flange], T[:3, 3], atol=1e-12)
+        np.testing.assert_allclose(d.site_xmat[flange].reshape(3, 3), T[:3, :3], atol=1e-12)
+    # the camera sits at T_flange_camera on the flange
+    arm.set_q(rng.uniform(arm.lower, arm.upper))
+    T_fc = (
+        fr.invert(fr.make_pose(d.site_xmat[flange].reshape(3, 3), d.site_xpos[flange])) @ arm.pose()
+    )
+    from vinetwin.twin.model import DEFAULT_T_FLANGE_CAMERA
+
+    np.testing.assert_allclose(T_fc, DEFAULT_T_FLANGE_CAMERA, atol=1e-12)
+
+
+def test_joint_velocities_produce_the_camera_twist() -> None:
+    """Finite differences: moving the joints by qdot dt moves the camera by twist dt."""
+    arm = PandaArm()
+    arm.set_q([0.1, -0.3, 0.2, -2.0, 0.1, 1.8, 0.5])
+    twist = np.array([0.02, -0.01, 0.015, 0.05, -0.03, 0.04])
+    T0 = arm.pose()
+    dt = 1e-4
+    arm.move(twist, dt)
+    measured = fr.se3_log(fr.invert(T0) @ arm.pose()) / dt
+    np.testing.assert_allclose(measured, twist, atol=2e-3 * np.linalg.norm(twist))
+
+
+def test_joint_limits_and_velocity_limits_hold() -> None:
+    arm = PandaArm()
+    for _ in range(200):  # a long push in one direction drives some joints to their limits
+        arm.move([0.5, 0.0, 0.0, 0.0, 0.0, 2.0], 0.05)
+        q = arm.q
+        assert np.all(q >= arm.lower - 1e-12) and np.all(q <= arm.upper + 1e-12)
+    qdot = arm.joint_velocities([10.0, 0, 0, 0, 0, 0])  # far beyond what the joints can do
+    assert np.all(np.abs(qdot) <= arm.vmax + 1e-9)
+
+
+def scenes(views: VineViews) -> dict[str, object]:
+    """Every MuJoCo scene of the project, compiled."""
+    mj = _lazy.mujoco()
+    from vinetwin.render.backends import vine_scene_xml
+
+    mesh = views.twin.load_mesh()
+    xml, assets = vine_scene_xml(
+        np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32), views.twin.camera
+    )
+    goal = views.twin.poses[0].T_vine_camera
+    return {
+        "panda.xml": mj.MjModel.from_xml_path(str(PANDA_DIR / "panda.xml")),
+        "scene.xml": mj.MjModel.from_xml_path(str(PANDA_DIR / "scene.xml")),
+        "render scene": mj.MjModel.from_xml_string(xml, assets),
+        "servo scene": PandaArm(
+            camera=views.twin.camera,
+            vine=(mesh.vertices, mesh.faces),
+            T_base_vine=goal_placement(goal),
+        ).model,
+    }
+
+
+def test_every_scene_compiles_and_steps_without_warnings(vine_views: VineViews) -> None:
+    mj = _lazy.mujoco()
+    for name, model in scenes(vine_views).items():
+        data = mj.MjData(model)
+        if model.nkey:
+            mj.mj_resetDataKeyframe(model, data, 0)
+        for _ in range(500):
+            mj.mj_step(model, data)
+        warned = [i for i in range(len(data.warning)) if data.warning[i].number]
+        assert warned == [], (name, [str(mj.mjtWarning(i)) for i in warned])
+        assert np.all(np.isfinite(data.qpos)), name
+    # the arm holds its home pose under its actuators (gravity compensated)
+    arm = PandaArm()
+    home = arm.q
+    assert arm.step_physics(1000) == []
+    np.testing.assert_allclose(arm.q, home, atol=2e-3)
+
+
+@pytest.mark.parametrize("robot", ["vinetwin", "menagerie"])
+def test_panda_servos_to_the_pruning_pose(vine_views: VineViews, robot: str) -> None:
+    model = None if robot == "vinetwin" else shared("robots", "franka_emika_panda")
+    twin = vine_views.twin
+    mesh = twin.load_mesh()
+    pose = twin.poses[0]
+    goal = pose.T_vine_camera
+    cut = twin.cut_point(pose.cut_point).point
+    arm = PandaArm(
+        model,
+        T_flange_camera=twin.T_flange_camera,
+        camera=twin.camera,
+        vine=(mesh.vertices, mesh.faces),
+        T_base_vine=goal_placement(goal),
+    )
+    start = start_pose(goal, cut, 0.05, 0.15, np.random.default_rng(3), twin.camera, 0.4)
+    cfg = SimConfig(variant="symmetric", duration=12.0, fixed_period=1 / 30)
+    run = simulate(vine_views.backend, goal, start, 1, twin.perception, cfg, arm=arm)
+    s = run.summary()
+    assert s["converged"], s
+    assert s["final_translation"] < 0.002 and s["final_rotation"] < 0.01
+    q = arm.q
+    assert np.all(q >= arm.lower) and np.all(q <= arm.upper)
