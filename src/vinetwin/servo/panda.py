@@ -7,8 +7,8 @@ loads the MuJoCo Menagerie's Panda instead (its `scene.xml`, or any MJCF file gi
 vinetwin adds, with MjSpec:
 
 - a `flange` site on `link7` (0.107 m along its z axis) when the model has none;
-- the camera: a site `d405` at `T_flange_camera` (OpenCV optical frame) and a MuJoCo camera
-  `d405` (OpenGL convention) for rendering in MuJoCo;
+- the camera: a body `d405` at `T_flange_camera` (its frame the OpenCV optical frame) with a
+  box for the housing, a site `d405` and a MuJoCo camera `d405` (OpenGL convention);
 - the vine mesh as a static body at `T_base_vine`, which can collide with the arm.
 
 Control (`move`): the camera twist, expressed in the camera frame, becomes a world twist at the
@@ -76,17 +76,20 @@ class PandaArm:
         if spec.site("flange") is None:
             link7.add_site(name="flange", pos=[0, 0, FLANGE_OFFSET], size=[0.01, 0, 0])
         T7c = make_pose(t=[0, 0, FLANGE_OFFSET]) @ T_fc
-        link7.add_site(
-            name="d405", pos=T7c[:3, 3].tolist(), quat=_wxyz(T7c[:3, :3]), size=[0.008, 0, 0]
-        )
+        # the D405 body: its frame is the optical frame (OpenCV); housing 42 x 42 x 23 mm behind
+        # the lens plane
+        cam_body = link7.add_body(name="d405", pos=T7c[:3, 3].tolist(), quat=_wxyz(T7c[:3, :3]))
+        cam_body.add_site(name="d405", size=[0.008, 0, 0])
+        cam_body.add_geom(
+            name="d405_housing", type=mj.mjtGeom.mjGEOM_BOX, size=[0.021, 0.021, 0.0115],
+            pos=[0, 0, -0.0115], contype=1, conaffinity=0, mass=0.06, rgba=[0.2, 0.2, 0.2, 1],
+        )  # fmt: skip
         if camera is not None:
-            pos, quat = mujoco_camera_pos_quat(T7c)
-            link7.add_camera(
-                name="d405",
-                pos=list(pos),
-                quat=list(quat),
+            pos, quat = mujoco_camera_pos_quat(np.eye(4))
+            cam_body.add_camera(
+                name="d405", pos=list(pos), quat=list(quat),
                 fovy=mujoco_fovy_deg(camera.fy, camera.height),
-            )
+            )  # fmt: skip
         self.T_base_vine = np.eye(4) if T_base_vine is None else np.asarray(T_base_vine, float)
         if vine is not None:
             V = np.asarray(vine[0], dtype=np.float64)
