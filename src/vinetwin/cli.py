@@ -356,6 +356,36 @@ class Validate:
             self.json.write_text(json.dumps(summary, indent=1))
 
 
+@dataclass(frozen=True, kw_only=True)
+class Web:
+    """Serve the authoring app: click canes, adjust pruning poses, preview what the D405 sees,
+    save, export."""
+
+    twin: Annotated[Path | None, tyro.conf.Positional] = None
+    """Twin folder (default: a copy of the bundled sample in out/web)."""
+    host: str = "127.0.0.1"
+    """Address to listen on."""
+    port: int = 8080
+    """Port to listen on."""
+
+    def run(self) -> None:
+        import shutil
+        import time
+
+        from vinetwin.web.app import serve
+
+        root = self.twin
+        if root is None:
+            root = Path("out") / "web" / "vine_bilateral.twin"
+            if not root.exists():
+                shutil.copytree(_bundled_sample(), root)
+            log.info("no twin given: editing a copy of the bundled sample in %s", root)
+        serve(root, self.host, self.port)
+        print(f"vinetwin web: open http://{self.host}:{self.port} (Ctrl-C stops)", flush=True)
+        while True:
+            time.sleep(3600)
+
+
 def _print_campaign(data: dict[str, object]) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -464,6 +494,7 @@ COMMANDS: dict[str, type] = {
     "demo": Demo,
     "campaign": Campaign,
     "validate": Validate,
+    "web": Web,
 }
 
 

@@ -1,1 +1,2 @@
-"""The Viser authoring app (issue: web). Not implemented yet."""
+"""The Viser authoring app (`vinetwin web`, docs/web.md): `session` holds the editing logic
+(testable without a browser), `app` binds it to the page."""

@@ -1,0 +1,421 @@
+"""The Viser authoring app: `vinetwin web [TWIN]`.
+
+The page shows the vine mesh, its skeleton and cut-point candidates (when the twin has them),
+world axes and a ground grid, the cut points and a camera frustum per pruning pose. A click on
+the mesh places a cut point at the hit and proposes its pruning pose 0.15 m away; the side panel
+adjusts the selected pose (standoff, approach azimuth and elevation, roll, ICP variant, name),
+snaps its optical axis back onto the cut point, deletes it, undoes and redoes, previews the
+reference cloud (coloured by depth) and the D405 depth image, and exports the references.
+Every edit is saved to twin.json at once (`AuthoringSession`); errors show in the page and the
+log, and the server keeps running.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin.cloud import ICP_VARIANTS
+from vinetwin.conventions import viser_wxyz_position
+from vinetwin.errors import VinetwinError
+from vinetwin.twin.poses import Approach
+from vinetwin.web.session import AuthoringSession
+
+log = logging.getLogger("vinetwin.web")
+
+
+def _depth_rgb(depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    import matplotlib
+
+    valid = np.isfinite(depth) & (depth > 0)
+    x = np.clip((depth - lo) / max(hi - lo, 1e-9), 0, 1)
+    rgb = (matplotlib.colormaps["turbo"](x)[..., :3] * 255).astype(np.uint8)
+    rgb[~valid] = 0
+    return rgb
+
+
+class App:
+    """The page bound to one `AuthoringSession`."""
+
+    def __init__(self, root: str | Path, host: str = "127.0.0.1", port: int = 8080) -> None:
+        import viser
+
+        self.session = AuthoringSession(root)
+        self.server = viser.ViserServer(host=host, port=port, label="vinetwin", verbose=False)
+        self.lock = threading.RLock()
+        self.last_latency = math.nan
+        s = self.server
+        g = s.gui
+        self.status = g.add_markdown("")
+        with g.add_folder("Pose"):
+            self.pose_dd: Any = g.add_dropdown("pose", ("-",))
+            self.name = g.add_text("name", "")
+            self.variant: Any = g.add_dropdown(
+                "ICP variant", ICP_VARIANTS, initial_value="point_to_plane"
+            )
+            self.standoff = g.add_number("standoff (m)", 0.15, min=0.05, max=0.6, step=0.005)
+            self.azimuth = g.add_number("azimuth (deg)", 0.0, step=1.0)
+            self.elevation = g.add_number("elevation (deg)", 0.0, min=-89, max=89, step=1.0)
+            self.roll = g.add_number("roll (deg)", 0.0, step=1.0)
+            self.apply = g.add_button("Apply")
+            self.snap = g.add_button("Snap axis to cut point")
+            self.delete = g.add_button("Delete pose")
+        with g.add_folder("Edit"):
+            self.undo = g.add_button("Undo")
+            self.redo = g.add_button("Redo")
+            self.save = g.add_button("Save")
+        with g.add_folder("Camera view"):
+            self.preview_btn = g.add_button("Preview")
+            self.image = g.add_image(np.zeros((48, 85, 3), np.uint8), label="D405 depth")
+        with g.add_folder("References and servo"):
+            self.export_btn = g.add_button("Export references")
+            self.progress = g.add_progress_bar(0.0, animated=False)
+            self.validate_btn = g.add_button("Validate pose (simulated servo)")
+            self.validation = g.add_markdown("")
+        with g.add_folder("View", expand_by_default=False):
+            self.show_skeleton = g.add_checkbox("skeleton", False)
+            self.show_candidates = g.add_checkbox("cut candidates", True)
+        self.listing = g.add_markdown("")
+        self._static_scene()
+        self._bind()
+        self.refresh()
+        threading.Thread(target=self._warm_up, daemon=True).start()
+
+    def _warm_up(self) -> None:
+        """Builds the renderer and compiles the perception chain before the first click."""
+        sess = self.session
+        if sess.twin is None or not sess.twin.poses:
+            return
+        with self.lock:
+            try:
+                sess.preview(sess.twin.poses[0].id)
+            except VinetwinError as exc:
+                log.warning("preview warm-up failed: %s", exc)
+
+    # ------------------------------------------------------------------ scene
+    def _static_scene(self) -> None:
+        s = self.server.scene
+        sess = self.session
+        s.add_frame("/world", axes_length=0.1, axes_radius=0.003)
+        if sess.twin is None:
+            return
+        V, F = sess.vertices, sess.faces
+        lo = V.min(0)
+        s.add_grid(
+            "/ground",
+            width=2.0,
+            height=2.0,
+            cell_size=0.1,
+            position=(float(V[:, 0].mean()), float(V[:, 1].mean()), float(lo[2])),
+        )
+        s.add_mesh_simple("/vine", V.astype(np.float32), F.astype(np.uint32), color=(140, 100, 70))
+        try:
+            sk = sess.twin.load_skeleton()
+        except VinetwinError:
+            sk = None
+        if sk is not None:
+            segs = [
+                np.stack([b.points[:-1], b.points[1:]], 1) for b in sk.branches if len(b.points) > 1
+            ]
+            if segs:
+                seg = np.concatenate(segs).astype(np.float32)
+                self._skeleton = s.add_line_segments(
+                    "/skeleton",
+                    seg,
+                    (60, 160, 60),
+                    thickness=1.5,
+                    thickness_units="screen",
+                    visible=False,
+                )
+            cands = (
+                np.array([c.point for c in sk.candidates]) if sk.candidates else np.zeros((0, 3))
+            )
+            if len(cands):
+                self._candidates = s.add_point_cloud(
+                    "/candidates",
+                    cands.astype(np.float32),
+                    (250, 200, 0),
+                    point_size=0.008,
+                    point_shape="circle",
+                )
+        # start looking at the first pose's cut point
+        twin = sess.twin
+        if twin.poses:
+            p = twin.poses[0]
+            cut = twin.cut_point(p.cut_point).point
+            cam = np.asarray(p.T_vine_camera)[:3, 3]
+            d = (cam - cut) / (np.linalg.norm(cam - cut) or 1.0)
+            # from the pose's side, farther and higher, so the pose's frustum is not in the way:
+            # the view's centre is the cut point on its cane
+            self.server.initial_camera.position = tuple(cut + 0.45 * d + np.array([0.0, 0.0, 0.25]))
+            self.server.initial_camera.look_at = tuple(cut)
+        else:
+            self.server.initial_camera.look_at = tuple(V.mean(0))
+            self.server.initial_camera.position = tuple(V.mean(0) + np.array([0.0, -1.2, 0.3]))
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+
+    def refresh(self) -> None:
+        """Redraws cut points and poses and the side panel from the session."""
+        sess = self.session
+        s = self.server.scene
+        twin = sess.twin
+        msg = (
+            f"**{twin.name}**: {len(twin.cut_points)} cut points, {len(twin.poses)} poses. Click a cane to add a cut."
+            if twin
+            else ""
+        )
+        if sess.problem:
+            msg = f"**Problem:** {sess.problem}\n\n" + msg
+        if not math.isnan(self.last_latency):
+            msg += f"\n\nlast click to preview: {1000 * self.last_latency:.0f} ms"
+        self.status.content = msg
+        if twin is None:
+            return
+        for h in getattr(self, "_handles", []):
+            h.remove()
+        self._handles: list[Any] = []
+        cam = twin.camera
+        fov = 2 * math.atan(cam.height / (2 * cam.fy))
+        for c in twin.cut_points:
+            self._handles.append(
+                s.add_icosphere(
+                    f"/cuts/{c.id}", radius=0.004, color=(230, 30, 30), position=tuple(c.point)
+                )
+            )
+        for p in twin.poses:
+            wxyz, pos = viser_wxyz_position(p.T_vine_camera)
+            sel = p.id == sess.selected
+            self._handles.append(
+                s.add_camera_frustum(
+                    f"/poses/{p.id}", fov=fov, aspect=cam.width / cam.height, scale=0.04,
+                    color=(255, 120, 0) if sel else (40, 40, 200), wxyz=wxyz, position=pos,
+                    thickness=0.0015,
+                )
+            )  # fmt: skip
+            cut = twin.cut_point(p.cut_point).point
+            self._handles.append(
+                s.add_line_segments(f"/axes/{p.id}", np.array([[pos, cut]], np.float32), (255, 120, 0) if sel else (40, 40, 200), thickness=1.0, thickness_units="screen")
+            )  # fmt: skip
+        lines = ["| pose | cut | variant | standoff |", "|---|---|---|---|"]
+        for p in twin.poses:
+            mark = "**" if p.id == sess.selected else ""
+            lines.append(
+                f"| {mark}{p.name}{mark} | {p.cut_point} | {p.icp_variant} | {p.standoff:.3f} m |"
+            )
+        self.listing.content = "\n".join(lines) if twin.poses else "No pruning poses yet."
+        ids = tuple(p.id for p in twin.poses) or ("-",)
+        self.pose_dd.options = ids
+        if sess.selected in ids:
+            self.pose_dd.value = sess.selected
+        if sess.selected:
+            p = twin.pose(sess.selected)
+            self.name.value = p.name
+            self.variant.value = p.icp_variant
+            self.standoff.value = round(p.standoff, 4)
+            self.azimuth.value = round(math.degrees(p.approach.azimuth), 2)
+            self.elevation.value = round(math.degrees(p.approach.elevation), 2)
+            self.roll.value = round(math.degrees(p.approach.roll), 2)
+            wxyz, pos = viser_wxyz_position(p.T_vine_camera)
+            self.gizmo = s.add_transform_controls("/gizmo", scale=0.05, wxyz=wxyz, position=pos)
+            self.gizmo.on_update(self._on_gizmo)
+
+    # ------------------------------------------------------------------ events
+    def _bind(self) -> None:
+        s = self.server
+
+        @s.scene.on_click()
+        def _(event: Any) -> None:
+            if event.ray_origin is None:
+                return
+            t0 = time.perf_counter()
+            with self.lock:
+                try:
+                    hit = self.session.click(event.ray_origin, event.ray_direction)
+                except VinetwinError as exc:
+                    self.session.problem = f"cannot place a cut point there: {exc}"
+                    hit = None
+                if hit is not None:
+                    self._show_preview(hit[1].id)
+                    self.last_latency = time.perf_counter() - t0
+                    log.info(
+                        "cut point %s, pose %s in %.0f ms",
+                        hit[0].id,
+                        hit[1].id,
+                        1000 * self.last_latency,
+                    )
+                self.refresh()
+
+        def guarded(fn: Any) -> Any:
+            def run(event: Any) -> None:
+                if getattr(event, "client", None) is None:
+                    return  # the server changed the widget itself (refresh): not a person's edit
+                with self.lock:
+                    try:
+                        fn()
+                    except VinetwinError as exc:
+                        self.session.problem = str(exc)
+                        log.error("%s", exc)
+                    self.refresh()
+
+            return run
+
+        sess = self.session
+        self.pose_dd.on_update(
+            guarded(
+                lambda: setattr(
+                    sess, "selected", self.pose_dd.value if self.pose_dd.value != "-" else ""
+                )
+            )
+        )
+        self.apply.on_click(guarded(self._apply))
+        self.snap.on_click(guarded(lambda: sess.snap(sess.selected) if sess.selected else None))
+        self.delete.on_click(
+            guarded(lambda: sess.delete_pose(sess.selected) if sess.selected else None)
+        )
+        self.undo.on_click(guarded(sess.undo))
+        self.redo.on_click(guarded(sess.redo))
+        self.save.on_click(guarded(sess.save))
+        self.preview_btn.on_click(
+            guarded(lambda: self._show_preview(sess.selected) if sess.selected else None)
+        )
+        self.export_btn.on_click(
+            lambda _: threading.Thread(target=self._export, daemon=True).start()
+        )
+        self.validate_btn.on_click(
+            lambda _: threading.Thread(target=self._validate, daemon=True).start()
+        )
+
+        def toggle(_: Any) -> None:
+            for name, box in (
+                ("_skeleton", self.show_skeleton),
+                ("_candidates", self.show_candidates),
+            ):
+                handle = getattr(self, name, None)
+                if handle is not None:
+                    handle.visible = bool(box.value)
+
+        self.show_skeleton.on_update(toggle)
+        self.show_candidates.on_update(toggle)
+
+    def _apply(self) -> None:
+        sess = self.session
+        if not sess.selected:
+            return
+        ap = Approach(
+            standoff=float(self.standoff.value),
+            azimuth=math.radians(float(self.azimuth.value)),
+            elevation=math.radians(float(self.elevation.value)),
+            roll=math.radians(float(self.roll.value)),
+        )
+        sess.set_approach(sess.selected, ap)
+        pose = sess._require().pose(sess.selected)
+        if self.name.value != pose.name:
+            sess.rename(pose.id, self.name.value)
+        if self.variant.value != pose.icp_variant:
+            sess.set_variant(pose.id, self.variant.value)
+
+    def _on_gizmo(self, event: Any) -> None:
+        from vinetwin.conventions import T_from_viser
+
+        if getattr(event, "client", None) is None:
+            return
+        with self.lock:
+            sess = self.session
+            if sess.selected:
+                try:
+                    sess.set_transform(
+                        sess.selected, T_from_viser(self.gizmo.wxyz, self.gizmo.position)
+                    )
+                except VinetwinError as exc:
+                    sess.problem = str(exc)
+            self.refresh()
+
+    def _show_preview(self, pose_id: str) -> None:
+        pv = self.session.preview(pose_id)
+        pts = pv.points
+        if len(pts):
+            cam = np.asarray(self.session._require().pose(pose_id).T_vine_camera)
+            z = (pts - cam[:3, 3]) @ cam[:3, 2]
+            colors = _depth_rgb(z, float(z.min()), float(z.max()))
+            self.server.scene.add_point_cloud(
+                "/preview", pts.astype(np.float32), colors, point_size=0.002
+            )
+        d = pv.depth
+        valid = np.isfinite(d) & (d > 0)
+        if valid.any():
+            self.image.image = _depth_rgb(d, float(d[valid].min()), float(d[valid].max()))[::2, ::2]
+
+    def _export(self) -> None:
+        from vinetwin.render.export import export_references
+
+        with self.lock:
+            twin = self.session.twin
+        if twin is None:
+            return
+
+        def progress(result: object, done: int, total: int) -> None:
+            self.progress.value = 100.0 * done / max(total, 1)
+
+        try:
+            report = export_references(twin, workers=1, progress=progress)
+            self.session.problem = (
+                "" if report.ok else f"{report.count('failed')} references failed"
+            )
+        except VinetwinError as exc:
+            self.session.problem = str(exc)
+        with self.lock:
+            self.refresh()
+
+    def _validate(self) -> None:
+        """One closed-loop run to the selected pose (kinematic simulation, the pose's ICP
+        variant) from 5 cm / 0.15 rad away; draws the camera path and reports the outcome."""
+        from vinetwin.servo.sim import SimConfig, simulate, start_pose
+
+        with self.lock:
+            sess = self.session
+            twin = sess.twin
+            pid = sess.selected
+            if twin is None or not pid:
+                return
+            pose = twin.pose(pid)
+            cut = twin.cut_point(pose.cut_point).point
+            goal = np.asarray(pose.T_vine_camera)
+            self.validation.content = f"simulating the servo to {pose.name}..."
+            sess.preview(pid)  # makes sure the renderer exists
+            backend = sess._backend
+        rng = np.random.default_rng(0)
+        start = start_pose(goal, cut, 0.05, 0.15, rng, twin.camera, twin.perception.max_depth)
+        cfg = SimConfig(variant=pose.icp_variant, duration=15.0)
+        try:
+            run = simulate(backend, goal, start, 0, twin.perception, cfg)
+        except VinetwinError as exc:
+            self.validation.content = f"validation failed: {exc}"
+            return
+        sm = run.summary()
+        path = np.array([T[:3, 3] for T in run.T], np.float32)
+        if len(path) > 1:
+            self.server.scene.add_line_segments(
+                "/validation", np.stack([path[:-1], path[1:]], 1), (0, 170, 0),
+                thickness=2.0, thickness_units="screen",
+            )  # fmt: skip
+        verdict = "converged" if sm["converged"] else "did not converge"
+        ct = sm["convergence_time"]
+        self.validation.content = (
+            f"{pose.name} ({pose.icp_variant}) from 5 cm / 0.15 rad: **{verdict}**, final error "
+            f"{1000 * sm['final_translation']:.2f} mm / {sm['final_rotation']:.4f} rad"
+            + (f" in {ct:.1f} s" if ct is not None else "")
+            + f", {sm['refused']} frames refused."
+        )
+
+
+def serve(root: str | Path, host: str = "127.0.0.1", port: int = 8080) -> App:
+    """Starts the app (returns at once; the server runs in its own threads)."""
+    app = App(root, host, port)
+    log.info("vinetwin web on http://%s:%d  (twin %s)", host, port, root)
+    return app

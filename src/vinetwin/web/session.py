@@ -1,0 +1,232 @@
+"""The authoring session behind the web app, without a browser: one twin being edited.
+
+Every edit goes through here (so it is tested without Viser): a click ray picks a point on the
+mesh, which becomes a cut point with its default pruning pose; poses are adjusted by their
+approach (standoff, azimuth, elevation, roll) or by a full pose from the gizmo, snapped back onto
+their cut point, renamed, given an ICP variant, deleted; every edit can be undone and redone and
+is saved at once (atomic write of twin.json, the only file an edit writes). A twin that cannot be
+saved (read-only folder) or loaded (invalid twin.json) is reported in `problem`, never raised out
+of a callback.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin.errors import VinetwinError
+from vinetwin.frames import Array
+from vinetwin.twin.model import CutPoint, PruningPose, Twin
+from vinetwin.twin.poses import Approach, estimate_cane_axis, snap_to_cut_point
+
+log = logging.getLogger("vinetwin.web")
+
+
+@dataclass
+class Preview:
+    """What the camera would see at a pose: the reference cloud (vine frame) and depth image."""
+
+    points: Array
+    depth: Any
+    """Depth image (H, W) in metres, float32."""
+    seconds: float
+
+
+class AuthoringSession:
+    """One twin under edit."""
+
+    def __init__(self, root: str | Path, autosave: bool = True) -> None:
+        self.root = Path(root)
+        self.autosave = autosave
+        self.problem = ""
+        """The last error a person should see ('' when all is well)."""
+        self.twin: Twin | None = None
+        self.vertices: Array = np.zeros((0, 3))
+        self.faces = np.zeros((0, 3), dtype=np.int64)
+        self._undo: list[dict[str, Any]] = []
+        self._redo: list[dict[str, Any]] = []
+        self._scene: Any = None
+        self._backend: Any = None
+        self.selected = ""
+        self.reload()
+
+    # ------------------------------------------------------------------ loading
+    def reload(self) -> bool:
+        """(Re)reads the twin and its mesh; False with `problem` set when it cannot."""
+        try:
+            twin = Twin.load(self.root)
+            mesh = twin.load_mesh()
+        except VinetwinError as exc:
+            self._fail(str(exc))
+            return False
+        self.twin = twin
+        self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        self.faces = np.asarray(mesh.faces, dtype=np.int64)
+        self._scene = None
+        self._backend = None
+        self.problem = ""
+        self.selected = twin.poses[0].id if twin.poses else ""
+        return True
+
+    def _fail(self, message: str) -> None:
+        self.problem = message
+        log.error("%s", message)
+
+    def _require(self) -> Twin:
+        if self.twin is None:
+            raise VinetwinError(self.problem or "no twin loaded")
+        return self.twin
+
+    # ------------------------------------------------------------------ picking
+    def pick(self, origin: Any, direction: Any) -> Array | None:
+        """The first point where a ray (vine frame) hits the mesh, or None."""
+        from vinetwin import _lazy
+
+        o3d = _lazy.open3d()
+        if self._scene is None:
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(
+                o3d.core.Tensor(self.vertices.astype(np.float32)),
+                o3d.core.Tensor(self.faces.astype(np.uint32)),
+            )
+            self._scene = scene
+        d = np.asarray(direction, dtype=np.float64)
+        d = d / (np.linalg.norm(d) or 1.0)
+        ray = np.concatenate([np.asarray(origin, dtype=np.float64), d])[None].astype(np.float32)
+        t = float(self._scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
+        if not np.isfinite(t):
+            return None
+        return np.asarray(origin, dtype=np.float64) + t * d
+
+    # ------------------------------------------------------------------ edits
+    def _edit(self) -> Twin:
+        twin = self._require()
+        self._undo.append(copy.deepcopy(twin.to_json()))
+        self._redo.clear()
+        return twin
+
+    def _done(self) -> None:
+        if self.autosave:
+            self.save()
+
+    def click(self, origin: Any, direction: Any) -> tuple[CutPoint, PruningPose] | None:
+        """A click on the mesh: a cut point at the hit and its default pruning pose."""
+        point = self.pick(origin, direction)
+        if point is None:
+            return None
+        axis = estimate_cane_axis(self.vertices, point)
+        twin = self._edit()
+        cut = twin.add_cut_point(point, axis, source="click")
+        pose = twin.add_pose(cut.id)
+        self.selected = pose.id
+        self._done()
+        return cut, pose
+
+    def set_approach(self, pose_id: str, approach: Approach) -> PruningPose:
+        from vinetwin.twin.poses import pruning_pose
+
+        twin = self._edit()
+        pose = twin.pose(pose_id)
+        cut = twin.cut_point(pose.cut_point)
+        pose.approach = approach
+        pose.standoff = approach.standoff
+        pose.T_vine_camera = pruning_pose(cut.point, cut.cane_axis, approach)
+        self._done()
+        return pose
+
+    def set_transform(self, pose_id: str, T_vine_camera: Any) -> PruningPose:
+        twin = self._edit()
+        pose = twin.set_pose(pose_id, T_vine_camera)
+        self._done()
+        return pose
+
+    def snap(self, pose_id: str) -> PruningPose:
+        """Turns the pose so its optical axis goes through its cut point again."""
+        twin = self._require()
+        pose = twin.pose(pose_id)
+        cut = twin.cut_point(pose.cut_point)
+        return self.set_transform(
+            pose_id, snap_to_cut_point(pose.T_vine_camera, cut.point, cut.cane_axis)
+        )
+
+    def rename(self, pose_id: str, name: str) -> None:
+        self._edit().pose(pose_id).name = name
+        self._done()
+
+    def set_variant(self, pose_id: str, variant: str) -> None:
+        from vinetwin.cloud import ICP_VARIANTS
+        from vinetwin.errors import InputError
+
+        if variant not in ICP_VARIANTS:
+            raise InputError(f"unknown ICP variant '{variant}'")
+        self._edit().pose(pose_id).icp_variant = variant
+        self._done()
+
+    def delete_pose(self, pose_id: str) -> None:
+        twin = self._edit()
+        pose = twin.delete_pose(pose_id)
+        if not any(p.cut_point == pose.cut_point for p in twin.poses):
+            twin.delete_cut_point(pose.cut_point)  # a clicked cut point without poses goes too
+        self.selected = twin.poses[-1].id if twin.poses else ""
+        self._done()
+
+    def undo(self) -> bool:
+        return self._swap(self._undo, self._redo)
+
+    def redo(self) -> bool:
+        return self._swap(self._redo, self._undo)
+
+    def _swap(self, source: list[dict[str, Any]], target: list[dict[str, Any]]) -> bool:
+        twin = self._require()
+        if not source:
+            return False
+        target.append(copy.deepcopy(twin.to_json()))
+        self.twin = Twin.from_json(twin.root, source.pop())
+        ids = [p.id for p in self.twin.poses]
+        if self.selected not in ids:
+            self.selected = ids[-1] if ids else ""
+        self._done()
+        return True
+
+    def save(self) -> bool:
+        """Writes twin.json (atomically); False with `problem` set when it cannot."""
+        try:
+            self._require().save()
+        except (VinetwinError, OSError) as exc:
+            self._fail(f"not saved: {exc}")
+            return False
+        self.problem = ""
+        return True
+
+    # ------------------------------------------------------------------ what the camera sees
+    def preview(self, pose_id: str) -> Preview:
+        """The reference cloud of a pose through the render module's default backend."""
+        from vinetwin.frames import transform_points
+        from vinetwin.render.backends import get_backend
+        from vinetwin.render.reference import pose_seed, render_reference
+        from vinetwin.render.sensor import SensorConfig
+
+        twin = self._require()
+        pose = twin.pose(pose_id)
+        t0 = time.perf_counter()
+        if self._backend is None:
+            self._backend = get_backend("open3d", self.vertices, self.faces, twin.camera)
+        ref = render_reference(
+            self._backend,
+            pose.T_vine_camera,
+            twin.perception,
+            SensorConfig(),
+            pose_seed(0, pose.id),
+        )
+        pts = (
+            transform_points(pose.T_vine_camera, ref.cloud.points)
+            if len(ref.cloud)
+            else ref.cloud.points
+        )
+        return Preview(pts, ref.depth, time.perf_counter() - t0)

