@@ -357,6 +357,132 @@ class Validate:
 
 
 @dataclass(frozen=True, kw_only=True)
+class CaptureSynthetic:
+    """Render a synthetic RGB-D capture of a twin's mesh (D405 depth with its noise, textured
+    colour, ground-truth poses) into a capture folder."""
+
+    twin: Annotated[Path, tyro.conf.Positional]
+    """Twin folder whose mesh is captured."""
+    out: Path
+    """Capture folder to write."""
+    frames: int = 120
+    """Number of frames."""
+    distance: float = 0.3
+    """Camera distance to the vine (m)."""
+    pose_noise: tuple[float, float] = (0.0, 0.0)
+    """Standard deviation of the error added to the recorded poses (m, rad)."""
+    seed: int = 0
+
+    def run(self) -> None:
+        from vinetwin.reconstruct.synthetic import synthetic_capture
+        from vinetwin.twin.model import Twin
+
+        twin = Twin.load(self.twin)
+        path = _with_progress(
+            "rendering frames",
+            lambda progress: synthetic_capture(
+                twin, self.out, self.frames, self.distance, self.seed, self.pose_noise, progress
+            ),
+        )
+        log.info("capture: %s (%d frames)", path, self.frames)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Reconstruct:
+    """Fuse a capture folder into a vine mesh (TSDF) and write it into a twin; optionally
+    evaluate it against a ground-truth mesh (Chamfer distance, F-score at 2 and 5 mm)."""
+
+    capture: Annotated[Path, tyro.conf.Positional]
+    """Capture folder (capture.json, color/, depth/)."""
+    twin: Path
+    """Twin folder to create (or update with --overwrite)."""
+    poses: Literal["kinematics", "colmap", "odometry"] = "kinematics"
+    """Pose source: the capture's robot kinematics; colmap and odometry are not built yet."""
+    voxel: float = 0.0015
+    """TSDF voxel size (m)."""
+    depth_max: float = 0.5
+    """Farthest depth fused (m)."""
+    target_triangles: int = 0
+    """Decimate the mesh to at most this many triangles (0: keep)."""
+    overwrite: bool = False
+    """Replace the mesh of an existing twin (its cut points and poses are kept)."""
+    ground_truth: Path | None = None
+    """A twin folder or mesh file to evaluate against."""
+    json: Path | None = None
+    """Write the fusion report and the evaluation here."""
+
+    def run(self) -> None:
+        import json as _json
+
+        import numpy as np
+
+        from vinetwin.errors import InputError
+        from vinetwin.reconstruct.capture import read_capture
+        from vinetwin.reconstruct.fusion import (
+            FusionConfig,
+            evaluate,
+            fuse,
+            kinematic_poses,
+            observed,
+        )
+        from vinetwin.twin.model import TWIN_FILE, Twin, load_mesh
+
+        if self.poses != "kinematics":
+            raise InputError(
+                f"pose source '{self.poses}' is not built yet; use --poses kinematics "
+                "(a capture with T_base_camera per frame)"
+            )
+        cap = read_capture(self.capture)
+        poses = kinematic_poses(cap)
+        cfg = FusionConfig(
+            voxel=self.voxel,
+            truncation=4 * self.voxel,
+            depth_max=self.depth_max,
+            target_triangles=self.target_triangles,
+        )
+        res = _with_progress("fusing frames", lambda progress: fuse(cap, poses, cfg, progress))
+        source = {"reconstructed_from": str(self.capture), "poses": self.poses, "voxel": self.voxel}
+        if (self.twin / TWIN_FILE).exists() and self.overwrite:
+            twin = Twin.load(self.twin)
+            twin.write_mesh(res.vertices, res.faces)
+            twin.extra["provenance_reconstruction"] = source
+            twin.save()
+        else:
+            Twin.create(self.twin, res.vertices, res.faces, camera=cap.camera, source=source)
+        report: dict[str, object] = {
+            "frames_fused": len(res.frames_used),
+            "frames_skipped": res.frames_skipped,
+            "seconds": res.seconds,
+            "triangles": len(res.faces),
+            "removed_components": res.removed_components,
+        }
+        log.info(
+            "fused %d frames in %.1f s: %d triangles -> %s",
+            len(res.frames_used), res.seconds, len(res.faces), self.twin,
+        )  # fmt: skip
+        if self.ground_truth is not None:
+            gt_path = self.ground_truth
+            gt = (
+                Twin.load(gt_path).load_mesh()
+                if (gt_path / TWIN_FILE).exists()
+                else load_mesh(gt_path)
+            )
+            Vg, Fg = np.asarray(gt.vertices), np.asarray(gt.faces)
+            ev = evaluate(
+                res.vertices, res.faces, Vg, Fg,
+                gt_mask_fn=lambda p, n: observed(p, n, cap, poses, Vg, Fg),
+            )  # fmt: skip
+            report["evaluation"] = ev
+            print(
+                f"Chamfer {ev['chamfer_mm']:.2f} mm, F-score@2mm {ev['fscore@2mm']:.3f}, "
+                f"F-score@5mm {ev['fscore@5mm']:.3f}"
+            )
+        if self.json:
+            self.json.parent.mkdir(parents=True, exist_ok=True)
+            self.json.write_text(_json.dumps(report, indent=1))
+
+
+@dataclass(frozen=True, kw_only=True)
 class Web:
     """Serve the authoring app: click canes, adjust pruning poses, preview what the D405 sees,
     save, export."""
@@ -495,6 +621,8 @@ COMMANDS: dict[str, type] = {
     "campaign": Campaign,
     "validate": Validate,
     "web": Web,
+    "capture-synthetic": CaptureSynthetic,
+    "reconstruct": Reconstruct,
 }
 
 

@@ -1,1 +1,2 @@
-"""Captured frames to a vine mesh (issue: reconstruct). Not implemented yet."""
+"""Captured frames to a vine mesh (docs/reconstruct.md): `capture` (the capture folder format),
+`synthetic` (synthetic captures of a twin), `fusion` (TSDF fusion, clean-up, evaluation)."""

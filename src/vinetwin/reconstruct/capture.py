@@ -1,0 +1,206 @@
+"""Capture folders: RGB-D frames of a vine with their camera model and, optionally, robot poses.
+
+Layout (docs/capture-format.md):
+
+    CAPTURE/
+      capture.json      format "vinetwin-capture", version 1, camera (CameraModel fields),
+                        depth_unit (metres per depth count), optional T_flange_camera (hand-eye),
+                        frames: [{id, color, depth, T_base_camera | T_base_flange}]
+      color/ID.png      8-bit RGB
+      depth/ID.png      16-bit z-depth, 0 = no data
+
+Reading checks what would otherwise turn into a bad mesh, naming the frame: a missing or
+unreadable file, an image whose size does not match the intrinsics, a depth unit that puts the
+median depth outside 2 cm - 2 m (wrong unit), too few frames.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from vinetwin.camera import CameraModel
+from vinetwin.errors import InputError
+from vinetwin.frames import Array, check_pose
+from vinetwin.twin.model import atomic_write_text
+
+CAPTURE_FORMAT = "vinetwin-capture"
+CAPTURE_VERSION = 1
+MIN_FRAMES = 3
+
+
+class CaptureError(InputError):
+    """A capture folder that cannot be used, with the frame (or field) at fault."""
+
+
+@dataclass
+class Frame:
+    id: str
+    color_path: Path
+    depth_path: Path
+    T_base_camera: Array | None = None
+    """The camera in the robot base (from kinematics and the hand-eye transform), if known."""
+
+    def depth(self, depth_unit: float) -> npt.NDArray[np.float32]:
+        """z-depth in metres (0 where the sensor gave nothing)."""
+        img = _read_png(self.depth_path, f"frame {self.id}: depth")
+        if img.dtype != np.uint16 or img.ndim != 2:
+            raise CaptureError(
+                f"frame {self.id}: depth {self.depth_path.name} must be a 16-bit single-channel "
+                f"PNG, got {img.dtype} with shape {img.shape}"
+            )
+        return img.astype(np.float32) * np.float32(depth_unit)
+
+    def color(self) -> npt.NDArray[np.uint8]:
+        img = _read_png(self.color_path, f"frame {self.id}: colour")
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        return np.ascontiguousarray(img[..., :3]).astype(np.uint8)
+
+
+@dataclass
+class Capture:
+    root: Path
+    camera: CameraModel
+    depth_unit: float
+    frames: list[Frame] = field(default_factory=list)
+    T_flange_camera: Array | None = None
+
+    @property
+    def has_poses(self) -> bool:
+        return all(f.T_base_camera is not None for f in self.frames)
+
+
+def _read_png(path: Path, what: str) -> np.ndarray:
+    import imageio.v3 as iio
+
+    if not path.exists():
+        raise CaptureError(f"{what}: {path} is missing")
+    try:
+        return np.asarray(iio.imread(path))
+    except Exception as exc:
+        raise CaptureError(f"{what}: cannot read {path}: {exc}") from exc
+
+
+def read_capture(root: str | Path, check_frames: bool = True) -> Capture:
+    """Reads and checks a capture folder; raises CaptureError naming what is wrong."""
+    root = Path(root)
+    meta_path = root / "capture.json"
+    if not meta_path.exists():
+        raise CaptureError(f"{root}: no capture.json here; is this a capture folder?")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except ValueError as exc:
+        raise CaptureError(f"{meta_path}: not valid JSON: {exc}") from exc
+    if meta.get("format") != CAPTURE_FORMAT:
+        raise CaptureError(
+            f"{meta_path}: format must be '{CAPTURE_FORMAT}', got {meta.get('format')!r}"
+        )
+    if int(meta.get("format_version", 0)) > CAPTURE_VERSION:
+        raise CaptureError(
+            f"{meta_path}: format version {meta['format_version']} is newer than this vinetwin reads ({CAPTURE_VERSION})"
+        )
+    try:
+        camera = CameraModel.from_dict(meta["camera"])
+        unit = float(meta["depth_unit"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CaptureError(f"{meta_path}: camera or depth_unit missing or invalid: {exc}") from exc
+    if not unit > 0:
+        raise CaptureError(f"{meta_path}: depth_unit must be positive, got {unit}")
+    T_fc = None
+    if meta.get("T_flange_camera") is not None:
+        T_fc = check_pose(meta["T_flange_camera"], "T_flange_camera")
+    frames = []
+    for i, fm in enumerate(meta.get("frames", [])):
+        fid = str(fm.get("id", i))
+        T = None
+        if fm.get("T_base_camera") is not None:
+            T = check_pose(fm["T_base_camera"], f"frame {fid}: T_base_camera")
+        elif fm.get("T_base_flange") is not None:
+            if T_fc is None:
+                raise CaptureError(
+                    f"frame {fid}: T_base_flange given but no T_flange_camera (hand-eye) in capture.json"
+                )
+            T = check_pose(fm["T_base_flange"], f"frame {fid}: T_base_flange") @ T_fc
+        if "depth" not in fm:
+            raise CaptureError(f"frame {fid}: no depth image listed")
+        frames.append(Frame(fid, root / fm.get("color", ""), root / fm["depth"], T))
+    if len(frames) < MIN_FRAMES:
+        raise CaptureError(f"{root}: {len(frames)} frames; at least {MIN_FRAMES} are needed")
+    cap = Capture(root, camera, unit, frames, T_fc)
+    if check_frames:
+        check_capture(cap)
+    return cap
+
+
+def check_capture(cap: Capture) -> None:
+    """Checks every frame's files, sizes and the plausibility of the depth unit."""
+    medians = []
+    for f in cap.frames:
+        d = f.depth(cap.depth_unit)
+        if d.shape != (cap.camera.height, cap.camera.width):
+            raise CaptureError(
+                f"frame {f.id}: depth is {d.shape[1]}x{d.shape[0]} but the intrinsics are for "
+                f"{cap.camera.width}x{cap.camera.height}"
+            )
+        if f.color_path.name:
+            c = f.color()
+            if c.shape[:2] != d.shape:
+                raise CaptureError(
+                    f"frame {f.id}: colour is {c.shape[1]}x{c.shape[0]}, depth {d.shape[1]}x{d.shape[0]}"
+                )
+        valid = d[d > 0]
+        if valid.size:
+            medians.append(float(np.median(valid)))
+    if not medians:
+        raise CaptureError(f"{cap.root}: no frame holds any depth")
+    med = float(np.median(medians))
+    if not 0.02 <= med <= 2.0:
+        raise CaptureError(
+            f"{cap.root}: median depth {med:.4g} m with depth_unit {cap.depth_unit} is implausible for "
+            "a D405 (0.07-0.5 m): wrong depth unit?"
+        )
+
+
+def write_capture(
+    root: str | Path,
+    camera: CameraModel,
+    frames: list[tuple[np.ndarray, np.ndarray, Array | None]],
+    depth_unit: float = 1e-4,
+    extra: dict[str, Any] | None = None,
+) -> Path:
+    """Writes (colour uint8 HxWx3, depth metres HxW, T_base_camera or None) frames as a capture."""
+    import imageio.v3 as iio
+
+    root = Path(root)
+    (root / "color").mkdir(parents=True, exist_ok=True)
+    (root / "depth").mkdir(parents=True, exist_ok=True)
+    listed = []
+    for i, (color, depth, T) in enumerate(frames):
+        fid = f"{i:06d}"
+        counts = np.where(np.isfinite(depth) & (depth > 0), np.round(depth / depth_unit), 0)
+        iio.imwrite(root / "depth" / f"{fid}.png", np.clip(counts, 0, 65535).astype(np.uint16))
+        iio.imwrite(root / "color" / f"{fid}.png", np.asarray(color, np.uint8))
+        entry: dict[str, Any] = {
+            "id": fid,
+            "color": f"color/{fid}.png",
+            "depth": f"depth/{fid}.png",
+        }
+        if T is not None:
+            entry["T_base_camera"] = np.asarray(T).tolist()
+        listed.append(entry)
+    meta = {
+        "format": CAPTURE_FORMAT,
+        "format_version": CAPTURE_VERSION,
+        "camera": camera.to_dict(),
+        "depth_unit": depth_unit,
+        **(extra or {}),
+        "frames": listed,
+    }
+    atomic_write_text(root / "capture.json", json.dumps(meta, indent=1) + "\n")
+    return root

@@ -1,0 +1,103 @@
+"""Synthetic captures: a sweep of D405 frames around a twin's mesh with ground-truth poses.
+
+The camera moves on a grid of viewpoints in front of the vine (the robot's side, -Y), at a
+working distance suited to the D405, each looking at a point of the vine; depth comes from the
+render module through the D405 sensor model, colour from a procedural bark texture (a function of
+the 3D surface point, so the same spot looks the same in every frame: features can be matched)
+over a plain background. Optional pose noise perturbs the recorded `T_base_camera` (as imperfect
+robot kinematics would), not the rendered view.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin.frames import Array, look_at, make_pose, so3_exp, transform_points
+from vinetwin.reconstruct.capture import write_capture
+from vinetwin.render.backends import get_backend
+from vinetwin.render.sensor import SensorConfig, apply_d405_model
+from vinetwin.twin.model import Twin
+
+
+def bark_colour(points: Array) -> np.ndarray:
+    """A deterministic bark-like texture: brown tones modulated by a few 3D sinusoids."""
+    p = np.asarray(points, dtype=np.float64)
+    f = (
+        np.sin(p @ np.array([310.0, 170.0, 90.0]))
+        + 0.7 * np.sin(p @ np.array([-120.0, 410.0, 230.0]) + 1.3)
+        + 0.5 * np.sin(p @ np.array([60.0, -250.0, 520.0]) + 0.4)
+        + 0.35 * np.sin(p @ np.array([900.0, 700.0, -800.0]))
+    )
+    t = (f - f.min()) / max(float(np.ptp(f)), 1e-9) if len(f) else f
+    base = np.array([95.0, 65.0, 40.0])
+    light = np.array([200.0, 160.0, 115.0])
+    return (base + t[:, None] * (light - base)).astype(np.uint8)
+
+
+def sweep_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
+    """Camera poses (vine frame) on a grid in front of the vine, each looking at the vine."""
+    V = np.asarray(twin.load_mesh().vertices)
+    lo, hi = np.percentile(V, 2, axis=0), np.percentile(V, 98, axis=0)
+    # the part with the canes: upper half of the vine's height
+    zc = lo[2] + 0.6 * (hi[2] - lo[2])
+    cols = max(2, round(float(np.sqrt(frames * 2))))
+    rows = max(1, int(np.ceil(frames / cols)))
+    poses = []
+    for r in range(rows):
+        for c in range(cols):
+            if len(poses) == frames:
+                break
+            x = lo[0] + (hi[0] - lo[0]) * (c + 0.5) / cols
+            z = zc + (hi[2] - zc) * ((r + 0.5) / rows - 0.5)
+            target = np.array([x, 0.5 * (lo[1] + hi[1]), z])
+            # alternate the viewing direction a little so canes are seen from several sides
+            yaw = 0.35 * np.sin(1.7 * (r * cols + c))
+            pitch = 0.25 * np.cos(1.3 * (r * cols + c))
+            d = np.array([np.sin(yaw), -np.cos(yaw) * np.cos(pitch), np.sin(pitch)])
+            poses.append(look_at(target + distance * d, target))
+    return poses
+
+
+def synthetic_capture(
+    twin: Twin,
+    out: str | Path,
+    frames: int = 120,
+    distance: float = 0.3,
+    seed: int = 0,
+    pose_noise: tuple[float, float] = (0.0, 0.0),
+    progress: Callable[[Any, int, int], None] | None = None,
+) -> Path:
+    """Renders the sweep into a capture folder; returns its path. `pose_noise` (m, rad) is the
+    standard deviation of the error added to the recorded poses."""
+    mesh = twin.load_mesh()
+    cam = twin.camera
+    backend = get_backend("open3d", mesh.vertices, mesh.faces, cam)
+    rng = np.random.default_rng(seed)
+    rows = []
+    poses = sweep_poses(twin, frames, distance)
+    for i, T in enumerate(poses):
+        clean = backend.render(T)
+        depth = apply_d405_model(clean, cam, rng, SensorConfig())
+        colour = np.empty((cam.height, cam.width, 3), np.uint8)
+        colour[:] = (200, 215, 230)  # sky-like background
+        valid = np.isfinite(clean) & (clean > 0)
+        if valid.any():
+            v, u = np.nonzero(valid)
+            pts_c = cam.deproject_pixels(np.column_stack([u, v]).astype(float), clean[valid])
+            colour[v, u] = bark_colour(transform_points(T, pts_c))
+        T_rec = T
+        if pose_noise[0] > 0 or pose_noise[1] > 0:
+            T_rec = T @ make_pose(
+                so3_exp(rng.normal(0, pose_noise[1], 3)), rng.normal(0, pose_noise[0], 3)
+            )
+        rows.append((colour, depth, T_rec))
+        if progress:
+            progress(None, i + 1, len(poses))
+    backend.close()
+    extra = {"provenance": {"generator": "vinetwin.reconstruct.synthetic", "twin": twin.name,
+                            "seed": seed, "distance": distance, "pose_noise": list(pose_noise)}}  # fmt: skip
+    return write_capture(out, cam, rows, extra=extra)

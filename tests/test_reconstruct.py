@@ -1,0 +1,102 @@
+"""Capture folders (round trip and named errors) and TSDF fusion against the ground truth."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import VineViews
+from vinetwin.reconstruct.capture import CaptureError, read_capture
+from vinetwin.reconstruct.fusion import FusionConfig, evaluate, fuse, kinematic_poses, observed
+from vinetwin.reconstruct.synthetic import synthetic_capture
+
+
+@pytest.fixture(scope="module")
+def capture(vine_views: VineViews, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("cap") / "capture"
+    return synthetic_capture(vine_views.twin, out, frames=40)
+
+
+def test_capture_round_trip(capture: Path, vine_views: VineViews) -> None:
+    cap = read_capture(capture)
+    assert len(cap.frames) == 40 and cap.has_poses
+    assert cap.camera == vine_views.twin.camera
+    f = cap.frames[5]
+    d = f.depth(cap.depth_unit)
+    assert d.shape == (cap.camera.height, cap.camera.width)
+    valid = d[d > 0]
+    assert 0.15 < float(np.median(valid)) < 0.45  # the sweep is 0.3 m from the vine
+    assert f.color().shape == (*d.shape, 3)
+
+
+@pytest.mark.parametrize(
+    ("damage", "needle"),
+    [
+        ("missing depth", "frame 000003: depth"),
+        ("wrong unit", "wrong depth unit"),
+        ("wrong intrinsics", "intrinsics are for"),
+        ("too few frames", "at least 3 are needed"),
+        ("hand-eye missing", "no T_flange_camera"),
+    ],
+)
+def test_bad_captures_name_the_problem(
+    capture: Path, tmp_path: Path, damage: str, needle: str
+) -> None:
+    bad = tmp_path / "bad"
+    shutil.copytree(capture, bad)
+    meta = json.loads((bad / "capture.json").read_text())
+    if damage == "missing depth":
+        (bad / "depth" / "000003.png").unlink()
+    elif damage == "wrong unit":
+        meta["depth_unit"] = 1e-7
+    elif damage == "wrong intrinsics":
+        meta["camera"]["width"] = 640
+        meta["camera"]["cx"] = 319.5
+    elif damage == "too few frames":
+        meta["frames"] = meta["frames"][:2]
+    elif damage == "hand-eye missing":
+        fr0 = meta["frames"][0]
+        fr0["T_base_flange"] = fr0.pop("T_base_camera")
+    (bad / "capture.json").write_text(json.dumps(meta))
+    with pytest.raises(CaptureError, match=needle):
+        read_capture(bad)
+
+
+def test_fusion_with_kinematic_poses_matches_the_ground_truth(
+    capture: Path, vine_views: VineViews
+) -> None:
+    """40 frames at 2 mm voxels (the full-size figures are in the closing note of the
+    reconstruction issue): the mesh lies on the ground truth (precision at 2 mm above 0.95) and
+    covers most of what the frames saw (F-score at 5 mm above 0.85)."""
+    cap = read_capture(capture)
+    poses = kinematic_poses(cap)
+    res = fuse(cap, poses, FusionConfig(voxel=0.002, truncation=0.008))
+    assert len(res.frames_used) == 40 and res.frames_skipped == {}
+    gt = vine_views.twin.load_mesh()
+    Vg, Fg = np.asarray(gt.vertices), np.asarray(gt.faces)
+    ev = evaluate(
+        res.vertices, res.faces, Vg, Fg,
+        gt_mask_fn=lambda p, n: observed(p, n, cap, poses, Vg, Fg), samples=60_000,
+    )  # fmt: skip
+    assert ev["precision@2mm"] > 0.95, ev
+    assert ev["fscore@5mm"] > 0.9, ev
+    # thin canes survive fusion: around each cut point the frames measured (cut points sit on
+    # canes 6-12 mm thick), the measured ground truth is within 2 mm of the mesh
+    from scipy.spatial import KDTree
+
+    from vinetwin.reconstruct.fusion import _sample
+
+    pts, nrm = _sample(Vg, Fg, 60_000, 5)
+    seen = observed(pts, nrm, cap, poses, Vg, Fg)
+    d = KDTree(_sample(res.vertices, res.faces, 100_000, 6)[0]).query(pts)[0]
+    checked = 0
+    for c in vine_views.twin.cut_points:
+        near = seen & (np.linalg.norm(pts - c.point, axis=1) < 0.01)
+        if near.sum() >= 30:
+            checked += 1
+            assert (d[near] < 0.002).mean() > 0.8, (c.id, (d[near] < 0.002).mean())
+    assert checked >= 2
