@@ -397,7 +397,8 @@ class Reconstruct:
     twin: Path
     """Twin folder to create (or update with --overwrite)."""
     poses: Literal["kinematics", "colmap", "odometry"] = "kinematics"
-    """Pose source: the capture's robot kinematics; colmap and odometry are not built yet."""
+    """Pose source: the capture's robot kinematics, or pycolmap structure-from-motion on the
+    colour frames (metric scale from the depth); odometry is not built yet."""
     voxel: float = 0.0015
     """TSDF voxel size (m)."""
     depth_max: float = 0.5
@@ -427,13 +428,33 @@ class Reconstruct:
         )
         from vinetwin.twin.model import TWIN_FILE, Twin, load_mesh
 
-        if self.poses != "kinematics":
+        if self.poses == "odometry":
             raise InputError(
-                f"pose source '{self.poses}' is not built yet; use --poses kinematics "
-                "(a capture with T_base_camera per frame)"
+                "pose source 'odometry' is not built yet; use --poses kinematics or colmap"
             )
         cap = read_capture(self.capture)
-        poses = kinematic_poses(cap)
+        sfm_report: dict[str, object] = {}
+        if self.poses == "colmap":
+            from vinetwin.reconstruct.sfm import align_to, colmap_poses
+
+            sfm = colmap_poses(cap)
+            poses = sfm.poses
+            if cap.has_poses:  # express the mesh in the robot base, as kinematics would
+                poses = align_to(poses, kinematic_poses(cap))
+            sfm_report = {
+                "registered": len(sfm.poses),
+                "unregistered": sfm.unregistered,
+                "scale_m_per_unit": sfm.scale,
+                "seconds": sfm.seconds,
+                "points": sfm.points,
+            }
+            log.info(
+                "structure-from-motion registered %d of %d frames in %.1f s%s",
+                len(sfm.poses), len(cap.frames), sfm.seconds,
+                f"; not registered: {', '.join(sfm.unregistered)}" if sfm.unregistered else "",
+            )  # fmt: skip
+        else:
+            poses = kinematic_poses(cap)
         cfg = FusionConfig(
             voxel=self.voxel,
             truncation=4 * self.voxel,
@@ -455,6 +476,8 @@ class Reconstruct:
             "seconds": res.seconds,
             "triangles": len(res.faces),
             "removed_components": res.removed_components,
+            "poses": self.poses,
+            **({"structure_from_motion": sfm_report} if sfm_report else {}),
         }
         log.info(
             "fused %d frames in %.1f s: %d triangles -> %s",
@@ -468,9 +491,10 @@ class Reconstruct:
                 else load_mesh(gt_path)
             )
             Vg, Fg = np.asarray(gt.vertices), np.asarray(gt.faces)
+            gt_poses = kinematic_poses(cap) if cap.has_poses else poses
             ev = evaluate(
                 res.vertices, res.faces, Vg, Fg,
-                gt_mask_fn=lambda p, n: observed(p, n, cap, poses, Vg, Fg),
+                gt_mask_fn=lambda p, n: observed(p, n, cap, gt_poses, Vg, Fg),
             )  # fmt: skip
             report["evaluation"] = ev
             print(
