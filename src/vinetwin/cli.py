@@ -388,6 +388,25 @@ class CaptureSynthetic:
 
 
 @dataclass(frozen=True, kw_only=True)
+class ImportRecording:
+    """Turn a RealSense recording (.db3 from librealsense 2.59, or .bag where the installed
+    librealsense reads it) into a capture folder (colour aligned to depth; no robot poses)."""
+
+    recording: Annotated[Path, tyro.conf.Positional]
+    """Recording file."""
+    out: Path
+    """Capture folder to write."""
+    max_frames: int = 0
+    """Stop after this many frames (0: all)."""
+
+    def run(self) -> None:
+        from vinetwin.reconstruct.realsense import read_recording
+
+        path = read_recording(self.recording, self.out, self.max_frames)
+        log.info("capture: %s", path)
+
+
+@dataclass(frozen=True, kw_only=True)
 class Reconstruct:
     """Fuse a capture folder into a vine mesh (TSDF) and write it into a twin; optionally
     evaluate it against a ground-truth mesh (Chamfer distance, F-score at 2 and 5 mm)."""
@@ -646,6 +665,7 @@ COMMANDS: dict[str, type] = {
     "validate": Validate,
     "web": Web,
     "capture-synthetic": CaptureSynthetic,
+    "import-recording": ImportRecording,
     "reconstruct": Reconstruct,
 }
 
