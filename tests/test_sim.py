@@ -148,6 +148,10 @@ def test_validate_writes_the_map_and_resumes(sample_twin_dir: Path, tmp_path: Pa
         assert (root / "validation" / fn).exists()
     saved = Twin.load(root).pose("p1").extra["validation"]
     assert saved["variants"]["symmetric"]["success_rate"] == 1.0
+    from vinetwin.cli import _servo_ability
+
+    assert _servo_ability(saved, "symmetric") == "100% of 2 starts; basin 40 mm / 0.10 rad"
+    assert _servo_ability(saved, "lm") == "not validated with lm"
     # resumable: unchanged inputs are not run again; a changed radius is
     mtime = (root / "validation" / "p1.symmetric.json").stat().st_mtime_ns
     calls.clear()
