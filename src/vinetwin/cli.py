@@ -371,6 +371,8 @@ class CaptureSynthetic:
     """Camera distance to the vine (m)."""
     pose_noise: tuple[float, float] = (0.0, 0.0)
     """Standard deviation of the error added to the recorded poses (m, rad)."""
+    trajectory: Literal["grid", "path"] = "grid"
+    """grid: viewpoints spread over the vine; path: a continuous sweep with small steps (video)."""
     seed: int = 0
 
     def run(self) -> None:
@@ -381,7 +383,14 @@ class CaptureSynthetic:
         path = _with_progress(
             "rendering frames",
             lambda progress: synthetic_capture(
-                twin, self.out, self.frames, self.distance, self.seed, self.pose_noise, progress
+                twin,
+                self.out,
+                self.frames,
+                self.distance,
+                self.seed,
+                self.pose_noise,
+                progress,
+                self.trajectory,
             ),
         )
         log.info("capture: %s (%d frames)", path, self.frames)
@@ -416,8 +425,9 @@ class Reconstruct:
     twin: Path
     """Twin folder to create (or update with --overwrite)."""
     poses: Literal["kinematics", "colmap", "odometry"] = "kinematics"
-    """Pose source: the capture's robot kinematics, or pycolmap structure-from-motion on the
-    colour frames (metric scale from the depth); odometry is not built yet."""
+    """Pose source: the capture's robot kinematics, pycolmap structure-from-motion on the colour
+    frames (metric scale from the depth), or depth odometry (frame-to-frame ICP; needs a
+    video-like capture)."""
     voxel: float = 0.0015
     """TSDF voxel size (m)."""
     depth_max: float = 0.5
@@ -436,7 +446,6 @@ class Reconstruct:
 
         import numpy as np
 
-        from vinetwin.errors import InputError
         from vinetwin.reconstruct.capture import read_capture
         from vinetwin.reconstruct.fusion import (
             FusionConfig,
@@ -447,13 +456,20 @@ class Reconstruct:
         )
         from vinetwin.twin.model import TWIN_FILE, Twin, load_mesh
 
-        if self.poses == "odometry":
-            raise InputError(
-                "pose source 'odometry' is not built yet; use --poses kinematics or colmap"
-            )
         cap = read_capture(self.capture)
         sfm_report: dict[str, object] = {}
-        if self.poses == "colmap":
+        if self.poses == "odometry":
+            from vinetwin.reconstruct.odometry import odometry_poses
+            from vinetwin.reconstruct.sfm import align_to
+
+            odo = odometry_poses(cap)
+            poses = align_to(odo.poses, kinematic_poses(cap)) if cap.has_poses else odo.poses
+            sfm_report = {"failed_pairs": odo.failed, "seconds": odo.seconds}
+            log.info(
+                "odometry over %d frames in %.1f s%s", len(cap.frames), odo.seconds,
+                f"; pairs that did not align: {', '.join(odo.failed)}" if odo.failed else "",
+            )  # fmt: skip
+        elif self.poses == "colmap":
             from vinetwin.reconstruct.sfm import align_to, colmap_poses
 
             sfm = colmap_poses(cap)
@@ -496,7 +512,7 @@ class Reconstruct:
             "triangles": len(res.faces),
             "removed_components": res.removed_components,
             "poses": self.poses,
-            **({"structure_from_motion": sfm_report} if sfm_report else {}),
+            **({f"{self.poses}_report": sfm_report} if sfm_report else {}),
         }
         log.info(
             "fused %d frames in %.1f s: %d triangles -> %s",

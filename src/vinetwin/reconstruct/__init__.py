@@ -1,3 +1,3 @@
 """Captured frames to a vine mesh (docs/reconstruct.md): `capture` (the capture folder format),
-`synthetic` (synthetic captures of a twin), `sfm` (poses from pycolmap), `fusion` (TSDF fusion,
-clean-up, evaluation)."""
+`realsense` (recordings), `synthetic` (synthetic captures of a twin), `sfm` and `odometry`
+(poses without a robot), `fusion` (TSDF fusion, clean-up, evaluation)."""

@@ -62,6 +62,26 @@ def sweep_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
     return poses
 
 
+def path_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
+    """A video-like path: the camera sweeps along the vine and back at two heights, a small step
+    between frames (what a hand-held or arm-held camera records at video rate)."""
+    V = np.asarray(twin.load_mesh().vertices)
+    lo, hi = np.percentile(V, 2, axis=0), np.percentile(V, 98, axis=0)
+    zc = lo[2] + 0.6 * (hi[2] - lo[2])
+    s = np.linspace(0.0, 1.0, frames)
+    # out along the vine at the lower height, back at the upper one
+    x = np.where(s < 0.5, lo[0] + (hi[0] - lo[0]) * 2 * s, hi[0] - (hi[0] - lo[0]) * (2 * s - 1))
+    rise = np.clip((s - 0.45) / 0.1, 0.0, 1.0)  # climb between the two passes, no jump
+    z = zc - 0.05 + 0.15 * rise * rise * (3 - 2 * rise)
+    poses = []
+    for k in range(frames):
+        target = np.array([x[k], 0.5 * (lo[1] + hi[1]), z[k]])
+        yaw = 0.25 * np.sin(6 * np.pi * s[k])
+        d = np.array([np.sin(yaw), -np.cos(yaw), 0.15])
+        poses.append(look_at(target + distance * d / np.linalg.norm(d), target))
+    return poses
+
+
 def synthetic_capture(
     twin: Twin,
     out: str | Path,
@@ -70,15 +90,20 @@ def synthetic_capture(
     seed: int = 0,
     pose_noise: tuple[float, float] = (0.0, 0.0),
     progress: Callable[[Any, int, int], None] | None = None,
+    trajectory: str = "grid",
 ) -> Path:
     """Renders the sweep into a capture folder; returns its path. `pose_noise` (m, rad) is the
-    standard deviation of the error added to the recorded poses."""
+    standard deviation of the error added to the recorded poses. `trajectory`: "grid" (viewpoints
+    spread over the vine, for fusion and structure-from-motion) or "path" (a continuous sweep with
+    small steps, as a video, for frame-to-frame odometry)."""
     mesh = twin.load_mesh()
     cam = twin.camera
     backend = get_backend("open3d", mesh.vertices, mesh.faces, cam)
     rng = np.random.default_rng(seed)
     rows = []
-    poses = sweep_poses(twin, frames, distance)
+    if trajectory not in ("grid", "path"):
+        raise ValueError(f"unknown trajectory '{trajectory}'; choose grid or path")
+    poses = (sweep_poses if trajectory == "grid" else path_poses)(twin, frames, distance)
     for i, T in enumerate(poses):
         clean = backend.render(T)
         depth = apply_d405_model(clean, cam, rng, SensorConfig())
