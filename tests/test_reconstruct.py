@@ -21,6 +21,17 @@ def capture(vine_views: VineViews, tmp_path_factory: pytest.TempPathFactory) -> 
     return synthetic_capture(vine_views.twin, out, frames=40)
 
 
+def fused_scores(cap, poses, truth, views: VineViews) -> dict:  # type: ignore[no-untyped-def]
+    """Fuses the capture with `poses` and scores the mesh on the ground truth `truth` measured."""
+    res = fuse(cap, poses)
+    gt = views.twin.load_mesh()
+    Vg, Fg = np.asarray(gt.vertices), np.asarray(gt.faces)
+    return evaluate(
+        res.vertices, res.faces, Vg, Fg,
+        gt_mask_fn=lambda p, n: observed(p, n, cap, truth, Vg, Fg), samples=60_000,
+    )  # fmt: skip
+
+
 def test_capture_round_trip(capture: Path, vine_views: VineViews) -> None:
     cap = read_capture(capture)
     assert len(cap.frames) == 40 and cap.has_poses
@@ -116,13 +127,7 @@ def test_structure_from_motion_poses(vine_views: VineViews, tmp_path: Path) -> N
     aligned = align_to(sfm.poses, truth)
     err = np.array([fr.pose_error(aligned[k], truth[k])[0] for k in aligned])
     assert np.median(err) < 0.005, np.median(err)
-    res = fuse(cap, aligned)
-    gt = vine_views.twin.load_mesh()
-    Vg, Fg = np.asarray(gt.vertices), np.asarray(gt.faces)
-    ev = evaluate(
-        res.vertices, res.faces, Vg, Fg,
-        gt_mask_fn=lambda p, n: observed(p, n, cap, truth, Vg, Fg), samples=60_000,
-    )  # fmt: skip
+    ev = fused_scores(cap, aligned, truth, vine_views)
     assert ev["fscore@5mm"] >= 0.8, ev
 
 
@@ -168,13 +173,7 @@ def test_depth_odometry_on_a_video_like_capture(vine_views: VineViews, tmp_path:
     aligned = align_to(odo.poses, truth)
     err = np.array([fr.pose_error(aligned[k], truth[k])[0] for k in aligned])
     assert np.median(err) < 0.01, np.median(err)
-    res = fuse(cap, aligned)
-    gt = vine_views.twin.load_mesh()
-    Vg, Fg = np.asarray(gt.vertices), np.asarray(gt.faces)
-    ev = evaluate(
-        res.vertices, res.faces, Vg, Fg,
-        gt_mask_fn=lambda p, n: observed(p, n, cap, truth, Vg, Fg), samples=60_000,
-    )  # fmt: skip
+    ev = fused_scores(cap, aligned, truth, vine_views)
     assert ev["fscore@5mm"] > 0.8, ev
 
 
