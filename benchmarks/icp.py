@@ -110,17 +110,8 @@ def _levels(start: str) -> list[tuple[float, float]]:
 
 
 def _down(cloud: Cloud, voxel: float) -> tuple[np.ndarray, np.ndarray | None]:
-    pts, nrm = (
-        voxel_downsample(cloud.points, voxel, cloud.normals)
-        if voxel > 0
-        else (
-            cloud.points,
-            cloud.normals,
-        )
-    )
-    if nrm is not None and voxel > 0:
-        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    return pts, nrm
+    """The same level copy every method gets (unit normals; the cloud as is at voxel 0)."""
+    return voxel_downsample(cloud.points, voxel, cloud.normals)
 
 
 def open3d_method(kind: str, start: str) -> Callable[[Case], Callable[[], tuple[Any, int]]]:

@@ -8,6 +8,15 @@ import dataclasses
 from typing import Any, Self
 
 
+def json_default(x: Any) -> Any:
+    """`json.dumps(default=...)` for numpy scalars and arrays in result records."""
+    import numpy as np
+
+    if isinstance(x, np.generic | np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
 class JsonFields:
     """Mixin for dataclasses stored in twin.json and reference sidecars."""
 

@@ -83,8 +83,8 @@ def voxel_downsample(
     normals: npt.NDArray[np.float64] | None = None,
     origin: npt.ArrayLike | None = None,
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64] | None]:
-    """Centroid of the points in each occupied voxel; normals, when given, are summed per voxel
-    (renormalise after).
+    """Centroid of the points in each occupied voxel; normals, when given, are averaged per voxel
+    and returned as unit vectors (zero where the voxel's normals cancel or are undefined).
 
     The grid is anchored at `origin` (default: the frame's origin, so the grid is the same for
     every cloud in that frame). Open3D's `voxel_down_sample` anchors it at the cloud's minimum
@@ -100,7 +100,10 @@ def voxel_downsample(
         np.ascontiguousarray(normals, dtype=np.float64) if normals is not None else np.zeros((0, 3))
     )
     out, nout = _kernels.voxel_grid(pts, nrm, float(voxel), o[0], o[1], o[2], normals is not None)
-    return out, (nout if normals is not None else None)
+    if normals is None:
+        return out, None
+    length = np.linalg.norm(nout, axis=1, keepdims=True)
+    return out, np.divide(nout, length, out=np.zeros_like(nout), where=length > 1e-12)
 
 
 def statistical_outliers(

@@ -46,15 +46,19 @@ class Frame:
     T_base_camera: Array | None = None
     """The camera in the robot base (from kinematics and the hand-eye transform), if known."""
 
-    def depth(self, depth_unit: float) -> npt.NDArray[np.float32]:
-        """z-depth in metres (0 where the sensor gave nothing)."""
+    def depth_counts(self) -> npt.NDArray[np.uint16]:
+        """The depth image as stored: counts of the capture's depth unit (0 = no data)."""
         img = _read_png(self.depth_path, f"frame {self.id}: depth")
         if img.dtype != np.uint16 or img.ndim != 2:
             raise CaptureError(
                 f"frame {self.id}: depth {self.depth_path.name} must be a 16-bit single-channel "
                 f"PNG, got {img.dtype} with shape {img.shape}"
             )
-        return img.astype(np.float32) * np.float32(depth_unit)
+        return np.ascontiguousarray(img)
+
+    def depth(self, depth_unit: float) -> npt.NDArray[np.float32]:
+        """z-depth in metres (0 where the sensor gave nothing)."""
+        return self.depth_counts().astype(np.float32) * np.float32(depth_unit)
 
     def color(self) -> npt.NDArray[np.uint8]:
         img = _read_png(self.color_path, f"frame {self.id}: colour")

@@ -63,8 +63,6 @@ def fuse(
     progress: Callable[[Any, int, int], None] | None = None,
 ) -> FusionResult:
     """Fuses the frames that have a pose (`poses`: frame id -> T_world_camera) into a mesh."""
-    import imageio.v3 as iio
-
     o3d = _lazy.open3d()
     o3c = o3d.core
     cfg = config or FusionConfig()
@@ -87,8 +85,7 @@ def fuse(
         if f.id not in poses:
             skipped[f.id] = "no pose"
             continue
-        f.depth(capture.depth_unit)  # checks the image
-        d16 = np.asarray(iio.imread(f.depth_path), dtype=np.uint16).copy()
+        d16 = f.depth_counts().copy()
         d16[d16 < int(cfg.depth_min * scale)] = 0
         if not d16.any():
             skipped[f.id] = "no depth within range"
@@ -206,14 +203,13 @@ def evaluate(
     if len(F) == 0 or len(F_gt) == 0:
         raise InputError("evaluation needs two non-empty meshes")
     rec, _ = _sample(V, F, samples, 1)
-    gt, gt_normals = _sample(V_gt, F_gt, samples, 2)
-    if gt_mask_fn is not None:
-        gt = gt[gt_mask_fn(gt, gt_normals)]
+    gt_all, gt_normals = _sample(V_gt, F_gt, samples, 2)
+    gt = gt_all[gt_mask_fn(gt_all, gt_normals)] if gt_mask_fn is not None else gt_all
     if len(gt) == 0:
         raise InputError("no ground-truth surface was observed by the capture")
     # precision: reconstructed points near the (whole) ground truth; recall: observed ground
     # truth near the reconstruction
-    d_rec = KDTree(_sample(V_gt, F_gt, samples, 3)[0]).query(rec, workers=-1)[0]
+    d_rec = KDTree(gt_all).query(rec, workers=-1)[0]
     d_gt = KDTree(rec).query(gt, workers=-1)[0]
     out: dict[str, Any] = {
         "chamfer_mm": 1000 * 0.5 * (float(d_rec.mean()) + float(d_gt.mean())),

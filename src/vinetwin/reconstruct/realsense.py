@@ -61,10 +61,9 @@ def write_recording(capture: Capture, path: str | Path) -> Path:
     queue = rs.frame_queue(64)
     sensor.open(profiles)
     sensor.start(queue)
-    import imageio.v3 as iio
 
     for i, f in enumerate(capture.frames):
-        depth = np.ascontiguousarray(iio.imread(f.depth_path), dtype=np.uint16)
+        depth = f.depth_counts()
         color = np.ascontiguousarray(f.color())
         for img, prof, bpp in ((depth, profiles[0], 2), (color, profiles[1], 3)):
             frame = rs.software_video_frame()

@@ -39,7 +39,6 @@ class SfmResult:
 def colmap_poses(capture: Capture, overlap: int = 25, max_features: int = 4000) -> SfmResult:
     """Runs structure-from-motion on the capture's colour frames; raises CaptureError when no
     frame registers."""
-    import imageio.v3 as iio
     import pycolmap
 
     t0 = time.perf_counter()
@@ -102,10 +101,7 @@ def colmap_poses(capture: Capture, overlap: int = 25, max_features: int = 4000) 
             if not img.has_pose:
                 continue
             fid = names[img.name]
-            depth = (
-                np.asarray(iio.imread(frames[fid].depth_path), dtype=np.float64)
-                * capture.depth_unit
-            )
+            depth = frames[fid].depth(capture.depth_unit)
             M = np.asarray(img.cam_from_world().matrix())
             for p2d in img.points2D:
                 if not p2d.has_point3D():

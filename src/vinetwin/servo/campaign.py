@@ -16,7 +16,6 @@ starts from the same pose). Runs go to `workers` processes, each with its own re
 from __future__ import annotations
 
 import json
-import math
 import multiprocessing as mp
 import os
 from collections.abc import Callable
@@ -27,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin._config import JsonFields
+from vinetwin._config import JsonFields, json_default
 from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
 from vinetwin.errors import InputError
 from vinetwin.render.reference import pose_seed
@@ -125,7 +124,7 @@ class _Job:
     """None: kinematic camera; "" vinetwin's Panda; else a Panda model path."""
 
 
-_WORKER: dict[str, Any] = {}
+_WORKER: dict[Any, Any] = {}
 
 
 def _init_worker(
@@ -149,19 +148,24 @@ def worker_backend() -> tuple[Any, PerceptionConfig]:
 
 def worker_arm(robot: str | None, goal: Any) -> Any:
     """This worker's Panda (None for the kinematic camera), its scene holding the vine placed so
-    the goal is comfortably reachable."""
+    the goal is comfortably reachable; compiled once per robot and goal (each run starts by
+    reaching its start pose from home)."""
     if robot is None:
         return None
     from vinetwin.servo.panda import PandaArm, goal_placement
 
+    key = ("arm", robot, np.asarray(goal, float).tobytes())
+    if key in _WORKER:
+        return _WORKER[key]
     mesh = _WORKER["mesh"]
-    return PandaArm(
+    _WORKER[key] = PandaArm(
         robot or None,
         T_flange_camera=_WORKER["T_flange_camera"],
         camera=_WORKER["backend"].camera,
         vine=(mesh.vertices, mesh.faces),
         T_base_vine=goal_placement(goal),
     )
+    return _WORKER[key]
 
 
 def _run_job(job: _Job) -> dict[str, Any]:
@@ -294,15 +298,7 @@ def run_campaign(
 
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(
-        out_dir / "campaign.json", json.dumps(data, indent=1, default=_jsonable) + "\n"
+        out_dir / "campaign.json", json.dumps(data, indent=1, default=json_default) + "\n"
     )
     report.write_report(data, out_dir)
     return data
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    raise TypeError(f"not JSON serialisable: {type(x)}")

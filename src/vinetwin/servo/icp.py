@@ -125,7 +125,6 @@ class ICPResult:
     overlap: float = 0.0
     """Accepted pairs over the size of the smaller cloud: near 1 when one view holds the other
     (a camera far from its goal sees more than the reference, and its fitness is low)."""
-    """Fraction of current points with an accepted correspondence."""
     inlier_rmse: float = float("nan")
     """RMS point-to-point distance of the accepted pairs (m)."""
     correspondences: int = 0
@@ -190,14 +189,11 @@ def _threads() -> int:
 
 
 def _downsample(points: NDF, normals: NDF | None, voxel: float) -> tuple[NDF, NDF | None]:
-    if voxel <= 0:
-        return np.ascontiguousarray(points, dtype=np.float64), (
-            None if normals is None else np.ascontiguousarray(normals, dtype=np.float64)
-        )
+    """A level's copy of a cloud, contiguous float64 as the kernels take it."""
     pts, nrm = voxel_downsample(points, voxel, normals)
-    if nrm is not None:
-        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    return pts, nrm
+    return np.ascontiguousarray(pts, dtype=np.float64), (
+        None if nrm is None else np.ascontiguousarray(nrm, dtype=np.float64)
+    )
 
 
 class ICP:

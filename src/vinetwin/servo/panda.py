@@ -30,7 +30,7 @@ from vinetwin import _lazy
 from vinetwin.camera import CameraModel
 from vinetwin.conventions import mujoco_camera_pos_quat, mujoco_fovy_deg, quat_wxyz_from_matrix
 from vinetwin.errors import InputError
-from vinetwin.frames import Array, make_pose, se3_log
+from vinetwin.frames import Array, invert, make_pose, pose_error, se3_log
 from vinetwin.twin.model import DEFAULT_T_FLANGE_CAMERA
 
 PANDA_DIR = Path(__file__).resolve().parent / "assets" / "panda"
@@ -182,8 +182,6 @@ class PandaArm:
         """Sets the joints so the camera is at T_base_camera: damped least squares from home,
         then from seeded random configurations within the limits. Returns (reached within
         1 mm / 0.01 rad, translation error m, rotation error rad) of the best try."""
-        from vinetwin.frames import invert, pose_error
-
         target = np.asarray(T_base_camera, float)
         rng = np.random.default_rng(0)
         self.reset()
@@ -229,8 +227,6 @@ def goal_placement(
     """T_base_vine that puts a pruning pose's camera at `position` in the robot base, looking
     forward (+x) and `pitch` rad down, the image's x axis to the robot's right: a pose the arm
     reaches with its joints away from their limits, and with room around it for the starts."""
-    from vinetwin.frames import invert
-
     z = np.array([np.cos(pitch), 0.0, -np.sin(pitch)])
     x = np.array([0.0, -1.0, 0.0])
     R = np.column_stack([x, np.cross(z, x), z])

@@ -39,7 +39,15 @@ from vinetwin._config import JsonFields
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import PerceptionConfig
 from vinetwin.errors import InputError
-from vinetwin.frames import Array, invert, make_pose, pose_error, se3_exp, so3_exp
+from vinetwin.frames import (
+    Array,
+    invert,
+    make_pose,
+    pose_error,
+    se3_exp,
+    so3_exp,
+    transform_points,
+)
 from vinetwin.render.backends import DepthBackend
 from vinetwin.render.reference import render_reference
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
@@ -156,12 +164,13 @@ class SimRun:
             k = int(outside[-1]) + 1 if outside.size else 0
             conv_time = float(t[k]) if k < len(t) else None
         sim_time = float(t[-1]) if len(t) else 0.0
+        start_t, start_r = pose_error(self.start, self.goal)
         return {
             "pose": self.pose_id,
             "variant": cfg.variant,
             "guess": cfg.guess,
-            "start_translation": pose_error(self.start, self.goal)[0],
-            "start_rotation": pose_error(self.start, self.goal)[1],
+            "start_translation": start_t,
+            "start_rotation": start_r,
             "final_translation": final_t,
             "final_rotation": final_r,
             "converged": bool(
@@ -211,7 +220,7 @@ def start_pose(
         a = rng.normal(size=3)
         a /= np.linalg.norm(a)
         T = make_pose(goal[:3, :3] @ so3_exp(rotation * a), goal[:3, 3] + translation * d)
-        p = invert(T)[:3, :3] @ target + invert(T)[:3, 3]
+        p = transform_points(invert(T), target[None])[0]
         if p[2] <= 0:
             continue
         u = camera.fx * p[0] / p[2] + camera.cx

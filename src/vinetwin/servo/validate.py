@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin._config import JsonFields
+from vinetwin._config import JsonFields, json_default
 from vinetwin.cloud import ICP_VARIANTS
 from vinetwin.errors import InputError
 from vinetwin.render.reference import file_sha256, pose_seed
@@ -119,14 +119,8 @@ def _run_group(group: _Group) -> dict[str, Any]:
         "basin_fraction": basin,
         "runs": runs,
     }
-    atomic_write_text(Path(group.out), json.dumps(data, indent=1, default=_finite) + "\n")
+    atomic_write_text(Path(group.out), json.dumps(data, indent=1, default=json_default) + "\n")
     return data
-
-
-def _finite(x: Any) -> Any:
-    if isinstance(x, np.generic):
-        return x.item()
-    raise TypeError(f"not JSON serialisable: {type(x)}")
 
 
 def validate(

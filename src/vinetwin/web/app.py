@@ -387,8 +387,7 @@ class App:
             cut = twin.cut_point(pose.cut_point).point
             goal = np.asarray(pose.T_vine_camera)
             self.validation.content = f"simulating the servo to {pose.name}..."
-            sess.preview(pid)  # makes sure the renderer exists
-            backend = sess._backend
+            backend = sess.renderer()
         rng = np.random.default_rng(0)
         start = start_pose(goal, cut, 0.05, 0.15, rng, twin.camera, twin.perception.max_depth)
         cfg = SimConfig(variant=pose.icp_variant, duration=15.0)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,7 +34,6 @@ class Preview:
     points: Array
     depth: Any
     """Depth image (H, W) in metres, float32."""
-    seconds: float
 
 
 class AuthoringSession:
@@ -51,8 +49,7 @@ class AuthoringSession:
         self.faces = np.zeros((0, 3), dtype=np.int64)
         self._undo: list[dict[str, Any]] = []
         self._redo: list[dict[str, Any]] = []
-        self._scene: Any = None
-        self._backend: Any = None
+        self._renderer: Any = None
         self.selected = ""
         self.reload()
 
@@ -68,8 +65,7 @@ class AuthoringSession:
         self.twin = twin
         self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
         self.faces = np.asarray(mesh.faces, dtype=np.int64)
-        self._scene = None
-        self._backend = None
+        self._renderer = None
         self.problem = ""
         self.selected = twin.poses[0].id if twin.poses else ""
         return True
@@ -84,22 +80,25 @@ class AuthoringSession:
         return self.twin
 
     # ------------------------------------------------------------------ picking
+    def renderer(self) -> Any:
+        """The render module's default backend on this twin's mesh (built once): it renders the
+        previews and its ray-casting scene answers the picks."""
+        from vinetwin.render.backends import get_backend
+
+        if self._renderer is None:
+            twin = self._require()
+            self._renderer = get_backend("open3d", self.vertices, self.faces, twin.camera)
+        return self._renderer
+
     def pick(self, origin: Any, direction: Any) -> Array | None:
         """The first point where a ray (vine frame) hits the mesh, or None."""
         from vinetwin import _lazy
 
         o3d = _lazy.open3d()
-        if self._scene is None:
-            scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(
-                o3d.core.Tensor(self.vertices.astype(np.float32)),
-                o3d.core.Tensor(self.faces.astype(np.uint32)),
-            )
-            self._scene = scene
         d = np.asarray(direction, dtype=np.float64)
         d = d / (np.linalg.norm(d) or 1.0)
         ray = np.concatenate([np.asarray(origin, dtype=np.float64), d])[None].astype(np.float32)
-        t = float(self._scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
+        t = float(self.renderer().scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
         if not np.isfinite(t):
             return None
         return np.asarray(origin, dtype=np.float64) + t * d
@@ -208,17 +207,13 @@ class AuthoringSession:
     def preview(self, pose_id: str) -> Preview:
         """The reference cloud of a pose through the render module's default backend."""
         from vinetwin.frames import transform_points
-        from vinetwin.render.backends import get_backend
         from vinetwin.render.reference import pose_seed, render_reference
         from vinetwin.render.sensor import SensorConfig
 
         twin = self._require()
         pose = twin.pose(pose_id)
-        t0 = time.perf_counter()
-        if self._backend is None:
-            self._backend = get_backend("open3d", self.vertices, self.faces, twin.camera)
         ref = render_reference(
-            self._backend,
+            self.renderer(),
             pose.T_vine_camera,
             twin.perception,
             SensorConfig(),
@@ -229,4 +224,4 @@ class AuthoringSession:
             if len(ref.cloud)
             else ref.cloud.points
         )
-        return Preview(pts, ref.depth, time.perf_counter() - t0)
+        return Preview(pts, ref.depth)
