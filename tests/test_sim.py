@@ -11,7 +11,7 @@ import pytest
 from tests.conftest import VineViews
 from vinetwin import frames as fr
 from vinetwin.servo.campaign import PRESETS, CampaignConfig, run_campaign
-from vinetwin.servo.sim import Disturbance, SimConfig, simulate, start_pose
+from vinetwin.servo.sim import Disturbance, SimConfig, SimRun, simulate, start_pose
 
 
 def _goal_and_start(vine_views: VineViews, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -63,7 +63,7 @@ def test_converges_then_recovers_from_the_vine_moving(vine_views: VineViews) -> 
 
 def test_slow_processing_holds_each_twist_longer(vine_views: VineViews) -> None:
     """The free-running loop: a 0.25 s processing time means 4 frames a second, and the same
-    gain then overshoots and oscillates more than at 30 Hz (the paper's argument for speed)."""
+    gain then jitters more around the goal than at 30 Hz (the paper's argument for speed)."""
     twin = vine_views.twin
     goal, start = _goal_and_start(vine_views, seed=1)
     runs = {}
@@ -80,7 +80,12 @@ def test_slow_processing_holds_each_twist_longer(vine_views: VineViews) -> None:
     fast, slow = runs[1 / 30].summary(), runs[0.25].summary()
     assert fast["loop_rate_hz"] == pytest.approx(30, rel=0.02)
     assert slow["loop_rate_hz"] == pytest.approx(4, rel=0.05)
-    assert fast["final_translation"] < slow["final_translation"]
+    # both settle on the same ICP bias (about 0.3 mm); the slow loop jitters around it more
+    def jitter(run: SimRun) -> float:
+        t, e = np.asarray(run.t), np.asarray(run.error_t)
+        return float(np.std(e[t >= t[-1] - 2.0]))
+
+    assert jitter(runs[0.25]) > 2 * jitter(runs[1 / 30])
 
 
 def test_campaign_writes_every_cell_and_plot(vine_views: VineViews, tmp_path: Path) -> None:

@@ -5,7 +5,7 @@ Layout (docs/capture-format.md):
     CAPTURE/
       capture.json      format "vinetwin-capture", version 1, camera (CameraModel fields),
                         depth_unit (metres per depth count), optional T_flange_camera (hand-eye),
-                        frames: [{id, color, depth, T_base_camera | T_base_flange}]
+                        frames: [{id, color, depth, T_base_camera | T_base_flange, stamp}]
       color/ID.png      8-bit RGB
       depth/ID.png      16-bit z-depth, 0 = no data
 
@@ -17,6 +17,7 @@ median depth outside 2 cm - 2 m (wrong unit), too few frames.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,10 +42,13 @@ class CaptureError(InputError):
 @dataclass
 class Frame:
     id: str
-    color_path: Path
+    color_path: Path | None
+    """None when the frame has no colour image."""
     depth_path: Path
     T_base_camera: Array | None = None
     """The camera in the robot base (from kinematics and the hand-eye transform), if known."""
+    stamp: float | None = None
+    """When the frame was taken (s), if recorded."""
 
     def depth_counts(self) -> npt.NDArray[np.uint16]:
         """The depth image as stored: counts of the capture's depth unit (0 = no data)."""
@@ -61,6 +65,8 @@ class Frame:
         return self.depth_counts().astype(np.float32) * np.float32(depth_unit)
 
     def color(self) -> npt.NDArray[np.uint8]:
+        if self.color_path is None:
+            raise CaptureError(f"frame {self.id}: no colour image was recorded")
         img = _read_png(self.color_path, f"frame {self.id}: colour")
         if img.ndim == 2:
             img = np.repeat(img[..., None], 3, axis=2)
@@ -133,7 +139,11 @@ def read_capture(root: str | Path, check_frames: bool = True) -> Capture:
             T = check_pose(fm["T_base_flange"], f"frame {fid}: T_base_flange") @ T_fc
         if "depth" not in fm:
             raise CaptureError(f"frame {fid}: no depth image listed")
-        frames.append(Frame(fid, root / fm.get("color", ""), root / fm["depth"], T))
+        stamp = fm.get("stamp")
+        if stamp is not None and not (isinstance(stamp, int | float) and math.isfinite(stamp)):
+            raise CaptureError(f"frame {fid}: stamp must be a finite number, got {stamp!r}")
+        color = root / fm["color"] if fm.get("color") else None
+        frames.append(Frame(fid, color, root / fm["depth"], T, stamp))
     if len(frames) < MIN_FRAMES:
         raise CaptureError(f"{root}: {len(frames)} frames; at least {MIN_FRAMES} are needed")
     cap = Capture(root, camera, unit, frames, T_fc)
@@ -152,7 +162,7 @@ def check_capture(cap: Capture) -> None:
                 f"frame {f.id}: depth is {d.shape[1]}x{d.shape[0]} but the intrinsics are for "
                 f"{cap.camera.width}x{cap.camera.height}"
             )
-        if f.color_path.name:
+        if f.color_path is not None:
             c = f.color()
             if c.shape[:2] != d.shape:
                 raise CaptureError(
@@ -171,6 +181,68 @@ def check_capture(cap: Capture) -> None:
         )
 
 
+class CaptureWriter:
+    """Writes a capture folder frame by frame (a recording of any length without holding it in
+    memory); `capture.json` is rewritten atomically every `flush_every` frames and at `close`,
+    so an interrupted recording keeps the frames listed so far."""
+
+    def __init__(
+        self,
+        root: str | Path,
+        camera: CameraModel,
+        depth_unit: float = 1e-4,
+        extra: dict[str, Any] | None = None,
+        flush_every: int = 30,
+    ) -> None:
+        self.root = Path(root)
+        (self.root / "color").mkdir(parents=True, exist_ok=True)
+        (self.root / "depth").mkdir(parents=True, exist_ok=True)
+        self.camera = camera
+        self.depth_unit = depth_unit
+        self.extra = extra or {}
+        self.flush_every = flush_every
+        self.listed: list[dict[str, Any]] = []
+
+    def add(
+        self,
+        counts: np.ndarray,
+        color: np.ndarray | None = None,
+        T_base_camera: Array | None = None,
+        stamp: float | None = None,
+    ) -> None:
+        """One frame: depth in counts of the depth unit (uint16), optional colour, pose, stamp."""
+        import imageio.v3 as iio
+
+        fid = f"{len(self.listed):06d}"
+        iio.imwrite(self.root / "depth" / f"{fid}.png", np.asarray(counts, np.uint16))
+        entry: dict[str, Any] = {"id": fid, "depth": f"depth/{fid}.png"}
+        if color is not None:
+            iio.imwrite(self.root / "color" / f"{fid}.png", np.asarray(color, np.uint8))
+            entry["color"] = f"color/{fid}.png"
+        if T_base_camera is not None:
+            entry["T_base_camera"] = np.asarray(T_base_camera).tolist()
+        if stamp is not None:
+            entry["stamp"] = float(stamp)
+        self.listed.append(entry)
+        if len(self.listed) % self.flush_every == 0:
+            self.flush()
+
+    def flush(self) -> None:
+        meta = {
+            "format": CAPTURE_FORMAT,
+            "format_version": CAPTURE_VERSION,
+            "camera": self.camera.to_dict(),
+            "depth_unit": self.depth_unit,
+            **self.extra,
+            "frames": self.listed,
+        }
+        atomic_write_text(self.root / "capture.json", json.dumps(meta, indent=1) + "\n")
+
+    def close(self) -> Path:
+        self.flush()
+        return self.root
+
+
 def write_capture(
     root: str | Path,
     camera: CameraModel,
@@ -179,32 +251,9 @@ def write_capture(
     extra: dict[str, Any] | None = None,
 ) -> Path:
     """Writes (colour uint8 HxWx3, depth metres HxW, T_base_camera or None) frames as a capture."""
-    import imageio.v3 as iio
-
-    root = Path(root)
-    (root / "color").mkdir(parents=True, exist_ok=True)
-    (root / "depth").mkdir(parents=True, exist_ok=True)
-    listed = []
-    for i, (color, depth, T) in enumerate(frames):
-        fid = f"{i:06d}"
-        counts = np.where(np.isfinite(depth) & (depth > 0), np.round(depth / depth_unit), 0)
-        iio.imwrite(root / "depth" / f"{fid}.png", np.clip(counts, 0, 65535).astype(np.uint16))
-        iio.imwrite(root / "color" / f"{fid}.png", np.asarray(color, np.uint8))
-        entry: dict[str, Any] = {
-            "id": fid,
-            "color": f"color/{fid}.png",
-            "depth": f"depth/{fid}.png",
-        }
-        if T is not None:
-            entry["T_base_camera"] = np.asarray(T).tolist()
-        listed.append(entry)
-    meta = {
-        "format": CAPTURE_FORMAT,
-        "format_version": CAPTURE_VERSION,
-        "camera": camera.to_dict(),
-        "depth_unit": depth_unit,
-        **(extra or {}),
-        "frames": listed,
-    }
-    atomic_write_text(root / "capture.json", json.dumps(meta, indent=1) + "\n")
-    return root
+    w = CaptureWriter(root, camera, depth_unit, extra, flush_every=10**9)
+    for color, depth, T in frames:
+        d = np.asarray(depth, dtype=np.float64)
+        counts = np.where(np.isfinite(d) & (d > 0), np.round(d / depth_unit), 0)
+        w.add(np.clip(counts, 0, 65535).astype(np.uint16), color, T)
+    return w.close()

@@ -90,7 +90,11 @@ def fuse(
         if not d16.any():
             skipped[f.id] = "no depth within range"
             continue
-        color = f.color() if f.color_path.name else np.zeros((cam.height, cam.width, 3), np.uint8)
+        color = (
+            f.color()
+            if f.color_path is not None
+            else np.zeros((cam.height, cam.width, 3), np.uint8)
+        )
         depth_img = o3d.t.geometry.Image(o3c.Tensor(d16))
         color_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color)))
         ext = o3c.Tensor(invert(poses[f.id]), o3c.float64)

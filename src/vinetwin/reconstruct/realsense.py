@@ -64,7 +64,11 @@ def write_recording(capture: Capture, path: str | Path) -> Path:
 
     for i, f in enumerate(capture.frames):
         depth = f.depth_counts()
-        color = np.ascontiguousarray(f.color())
+        color = (
+            np.ascontiguousarray(f.color())
+            if f.color_path is not None
+            else np.zeros((cam.height, cam.width, 3), np.uint8)
+        )
         for img, prof, bpp in ((depth, profiles[0], 2), (color, profiles[1], 3)):
             frame = rs.software_video_frame()
             frame.pixels = img

@@ -53,7 +53,7 @@ def colmap_poses(capture: Capture, overlap: int = 25, max_features: int = 4000) 
         images.mkdir()
         names = {}
         for f in capture.frames:
-            if not f.color_path.name:
+            if f.color_path is None:
                 raise CaptureError(
                     f"frame {f.id}: no colour image; structure-from-motion needs colour"
                 )

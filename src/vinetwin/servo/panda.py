@@ -73,6 +73,7 @@ class PandaArm:
         T_fc = np.asarray(
             DEFAULT_T_FLANGE_CAMERA if T_flange_camera is None else T_flange_camera, float
         )
+        self.T_flange_camera = T_fc
         if spec.site("flange") is None:
             link7.add_site(name="flange", pos=[0, 0, FLANGE_OFFSET], size=[0.01, 0, 0])
         T7c = make_pose(t=[0, 0, FLANGE_OFFSET]) @ T_fc

@@ -31,28 +31,32 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from vinetwin._config import JsonFields
 from vinetwin.camera import CameraModel
-from vinetwin.cloud import PerceptionConfig
+from vinetwin.cloud import Cloud, PerceptionConfig
 from vinetwin.errors import InputError
 from vinetwin.frames import (
     Array,
     invert,
     make_pose,
     pose_error,
-    se3_exp,
     so3_exp,
     transform_points,
 )
+from vinetwin.reconstruct.capture import CaptureWriter
 from vinetwin.render.backends import DepthBackend
 from vinetwin.render.reference import render_reference
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
 from vinetwin.servo.icp import ICPConfig
+from vinetwin.servo.loop import Cycle, CycleLog, LoopConfig, run_loop
 from vinetwin.servo.pbvs import Gain, Limits
+from vinetwin.servo.robot import CommandLimits, KinematicRobot, MujocoRobot, SimulatedRobot
+from vinetwin.servo.sources import CameraFrame, CameraSource, quantize_depth
 from vinetwin.servo.step import GUESSES, SafetyConfig, Servo
 
 
@@ -236,6 +240,100 @@ def start_pose(
     return best
 
 
+class SimCameraSource(CameraSource):
+    """The simulator's camera: the D405 at the simulated robot's camera pose, rendered from the
+    twin's mesh through the D405 model, streamed as 16-bit counts like the real one.
+
+    Simulated time: a frame is taken at once; the next one after the loop's processing time
+    (measured from this frame's delivery to the next `read`, or `fixed_period`), rounded up to
+    whole camera periods, during which the robot applies the twist it was last sent."""
+
+    def __init__(
+        self,
+        backend: DepthBackend,
+        robot: SimulatedRobot,
+        T_base_vine: Array,
+        rng: np.random.Generator,
+        *,
+        sensor: SensorConfig | None = None,
+        camera_rate: float = 30.0,
+        fixed_period: float = 0.0,
+        disturbance: Disturbance | None = None,
+    ) -> None:
+        self.backend = backend
+        self.camera = backend.camera
+        self.depth_unit = backend.camera.depth_unit
+        self.robot = robot
+        self.T_base_vine = np.asarray(T_base_vine, float)
+        self.rng = rng
+        self.sensor = sensor or SensorConfig()
+        self.period = 1.0 / camera_rate
+        self.fixed_period = fixed_period
+        self.disturbance = disturbance or Disturbance()
+        self.description = f"simulated D405 at {camera_rate:g} fps ({robot.name})"
+        self.number = 0
+        self._delivered: float | None = None
+        self.T = np.eye(4)
+        """The camera in the vine's original frame at the last frame."""
+        self.T_rel = np.eye(4)
+        """The camera relative to the (possibly moved) vine at the last frame."""
+
+    def read(self, timeout: float = 1.0) -> CameraFrame | None:
+        if self._delivered is not None:
+            compute = time.perf_counter() - self._delivered
+            hold = (
+                self.fixed_period
+                if self.fixed_period > 0
+                else self.period * max(1, math.ceil(compute / self.period))
+            )
+            self.robot.advance(hold)
+        t = self.robot.t
+        self.T = invert(self.T_base_vine) @ self.robot.T_base_camera()
+        self.T_rel = invert(self.disturbance.vine_motion(t)) @ self.T
+        depth = apply_d405_model(
+            self.backend.render(self.T_rel), self.camera, self.rng, self.sensor
+        )
+        frame = CameraFrame(quantize_depth(depth, self.depth_unit), self.depth_unit, t, self.number)
+        self.number += 1
+        self._delivered = time.perf_counter()
+        return frame
+
+    def now(self) -> float:
+        return self.robot.t
+
+
+def make_servo(
+    reference: Cloud,
+    camera: CameraModel,
+    perception: PerceptionConfig,
+    config: SimConfig,
+    safety: SafetyConfig | None = None,
+) -> Servo:
+    """The servo a `SimConfig` describes (the same one `vinetwin servo` builds)."""
+    cfg = config
+    return Servo(
+        reference,
+        icp=ICPConfig(variant=cfg.variant),
+        gain=Gain(l0=cfg.gain, l_inf=cfg.gain_far, adaptive=True),
+        limits=Limits(max_linear=cfg.max_linear, max_angular=cfg.max_angular),
+        safety=safety,
+        camera=camera,
+        perception=perception,
+        goal_translation=cfg.converged_translation,
+        goal_rotation=cfg.converged_rotation,
+        guess=cfg.guess,
+    )
+
+
+def believed_goal(goal: Array, config: SimConfig, rng: np.random.Generator) -> Array:
+    """Where the robot believes the reference camera is: the goal, off by the configured
+    registration error (the first frame's guess comes from it)."""
+    return goal @ make_pose(
+        so3_exp(_random_vector(rng, config.registration_error_rotation)),
+        _random_vector(rng, config.registration_error_translation),
+    )
+
+
 def simulate(
     backend: DepthBackend,
     goal: Array,
@@ -249,87 +347,84 @@ def simulate(
     pose_id: str = "",
     safety: SafetyConfig | None = None,
     arm: Any = None,
+    log: CycleLog | None = None,
+    record: str | Path | None = None,
 ) -> SimRun:
-    """One closed-loop run from `start` to `goal` (camera poses in the vine frame).
+    """One closed-loop run from `start` to `goal` (camera poses in the vine frame), through
+    `loop.run_loop`, the loop that drives hardware.
 
     With `arm` (a `servo.panda.PandaArm` whose scene holds the vine at `arm.T_base_vine`), the
     camera is the D405 on the Panda's hand: the arm first reaches the start pose (a start it
     cannot reach raises InputError), then each twist drives its joints. Without it the camera
-    flies freely."""
+    flies freely. `log` receives every cycle (with the true error); `record` writes the frames,
+    with their stamps and robot poses, as a capture folder that `FolderSource` replays."""
     cfg = config
     camera = backend.camera
     sensor = sensor or SensorConfig()
     dist = disturbance or Disturbance()
     rng = np.random.default_rng(cfg.seed)
     ref = render_reference(backend, goal, perception, sensor, reference_seed).cloud
-    servo = Servo(
-        ref,
-        icp=ICPConfig(variant=cfg.variant),
-        gain=Gain(l0=cfg.gain, l_inf=cfg.gain_far, adaptive=True),
-        limits=Limits(max_linear=cfg.max_linear, max_angular=cfg.max_angular),
-        safety=safety,
-        camera=camera,
-        perception=perception,
-        goal_translation=cfg.converged_translation,
-        goal_rotation=cfg.converged_rotation,
-        guess=cfg.guess,
-    )
-    # where the robot believes the reference camera is: the goal, off by the registration error
-    believed = goal @ make_pose(
-        so3_exp(_random_vector(rng, cfg.registration_error_rotation)),
-        _random_vector(rng, cfg.registration_error_translation),
-    )
-    servo.reset(invert(believed) @ start)
+    servo = make_servo(ref, camera, perception, cfg, safety)
+    servo.reset(invert(believed_goal(goal, cfg, rng)) @ start)
     run = SimRun(cfg, pose_id, np.asarray(goal, float), np.asarray(start, float), dist)
-    period = 1.0 / cfg.camera_rate
-    T_base_vine = np.eye(4) if arm is None else np.asarray(arm.T_base_vine, float)
-    if arm is not None:
+    limits = CommandLimits(max_linear=cfg.max_linear, max_angular=cfg.max_angular)
+    robot: SimulatedRobot
+    if arm is None:
+        T_base_vine = np.eye(4)
+        robot = KinematicRobot(start, limits=limits)
+    else:
+        T_base_vine = np.asarray(arm.T_base_vine, float)
         ok, dt_, dr_ = arm.reach(T_base_vine @ start)
         if not ok:
             raise InputError(
                 f"the arm cannot reach the start pose ({1000 * dt_:.1f} mm, {dr_:.3f} rad short)"
             )
-    T = np.asarray(start, dtype=np.float64).copy()  # camera in the vine's original frame
-    t = 0.0
-    at_goal_since: float | None = None
-    wall0 = time.perf_counter()
-    while t <= cfg.duration:
-        if arm is not None:
-            T = invert(T_base_vine) @ arm.pose()
-        M = dist.vine_motion(t)
-        T_rel = invert(M) @ T  # the camera relative to the (moved) vine
-        depth = apply_d405_model(backend.render(T_rel), camera, rng, sensor)
-        r = servo.step_depth(depth, stamp=t, T_base_camera=T_base_vine @ T)
-        compute = sum(r.timings.values())
-        et, er = pose_error(T_rel, goal)
+        robot = MujocoRobot(arm, limits=limits)
+    source = SimCameraSource(
+        backend, robot, T_base_vine, rng, sensor=sensor, camera_rate=cfg.camera_rate,
+        fixed_period=cfg.fixed_period, disturbance=dist,
+    )  # fmt: skip
+    writer = None
+    if record is not None:
+        writer = CaptureWriter(
+            record, camera, camera.depth_unit, extra={"provenance": {"simulation": cfg.to_dict()}}
+        )
+    at_goal_since: list[float | None] = [None]
+
+    def on_cycle(c: Cycle) -> dict[str, Any] | bool:
+        r, t = c.result, c.frame.stamp
+        et, er = pose_error(source.T_rel, goal)
         run.t.append(t)
-        run.T.append(T.copy())
+        run.T.append(source.T.copy())
         run.error_t.append(et)
         run.error_r.append(er)
         run.trusted.append(r.trusted)
-        run.compute.append(compute)
+        run.compute.append(sum(r.timings.values()))
         if not r.trusted:
             key = r.reason.split(":")[0]
             run.reasons[key] = run.reasons.get(key, 0) + 1
-        if cfg.settle > 0:
+        if writer is not None:
+            writer.add(c.frame.counts, None, c.T_base_camera, t)
+        if cfg.settle > 0:  # settled at the goal (and past the disturbance)
             if r.trusted and r.at_goal:
-                at_goal_since = t if at_goal_since is None else at_goal_since
-                if t - at_goal_since >= cfg.settle and (
-                    dist.time < 0 or t > dist.time + cfg.settle
-                ):
-                    break
-            elif r.trusted or at_goal_since is None:
-                at_goal_since = None
-        hold = (
-            cfg.fixed_period
-            if cfg.fixed_period > 0
-            else period * max(1, math.ceil(compute / period))
-        )
-        if arm is None:
-            T = T @ se3_exp(r.twist * hold)
-        else:
-            arm.move(r.twist, hold)
-        t += hold
+                since = at_goal_since[0] = t if at_goal_since[0] is None else at_goal_since[0]
+                if t - since >= cfg.settle and (dist.time < 0 or t > dist.time + cfg.settle):
+                    return True
+            elif r.trusted or at_goal_since[0] is None:
+                at_goal_since[0] = None
+        if t + 1e-9 >= cfg.duration:
+            return True
+        return {"true_error": [et, er]}
+
+    wall0 = time.perf_counter()
+    try:
+        run_loop(
+            servo, source, robot, LoopConfig(settle=0.0, max_cycle=0.0), log=log,
+            on_cycle=on_cycle,
+        )  # fmt: skip
+    finally:
+        if writer is not None:
+            writer.close()
     run.wall = time.perf_counter() - wall0
     return run
 

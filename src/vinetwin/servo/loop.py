@@ -1,0 +1,335 @@
+"""The servo loop, the same for the simulation and the hardware: frame -> perception -> ICP from
+the kinematic guess -> PBVS -> guarded command, one cycle per camera frame, every cycle logged.
+
+    with open_source("realsense") as cam, FrankaRobot(FrankyTransport(ip), T_fc) as robot:
+        summary = run_loop(servo, cam, robot, LoopConfig(), log=CycleLog("run.jsonl"))
+
+Safety, beyond `Servo.step`'s refusals (which already give exactly zero twist):
+- no frame within `frame_timeout`: the robot is stopped at once; after `camera_lost` s without
+  a frame the run ends ("camera stopped");
+- a cycle that took longer than `max_cycle` (frame stamp to command) sends zero instead of its
+  stale twist ("overrun");
+- the robot's own watchdog (`robot.CommandLimits.watchdog`) stops it if the loop itself hangs;
+- `dry_run` computes and logs every twist and sends none (the robot is only read);
+- an exception anywhere stops the robot before it propagates, as does Ctrl-C.
+
+The log (`CycleLog`) is JSON Lines: a header, then one record per cycle (stamps, ICP result,
+twist asked and sent, robot pose, timings, reason), then a footer with the summary.
+`log_as_campaign` turns it into the campaign report's structure, so its plots draw a hardware
+run the way they draw a simulated one (`vinetwin servo-plot`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from vinetwin._config import JsonFields, json_default
+from vinetwin.errors import InputError
+from vinetwin.frames import Array, invert, pose_error
+from vinetwin.servo.robot import Robot
+from vinetwin.servo.sources import CameraFrame, CameraSource
+from vinetwin.servo.step import Servo, StepResult
+
+LOG_FORMAT = "vinetwin-servo-log"
+LOG_VERSION = 1
+
+
+@dataclass(frozen=True, kw_only=True)
+class LoopConfig(JsonFields):
+    """How the loop runs and when it ends."""
+
+    dry_run: bool = False
+    """Compute and log twists, send none."""
+    duration: float = 0.0
+    """End after this many seconds of frames (stamp clock); 0: no limit."""
+    max_frames: int = 0
+    """End after this many frames; 0: no limit."""
+    settle: float = 2.0
+    """End once the servo has reported being at its goal for this long (s); 0: never."""
+    frame_timeout: float = 0.2
+    """Stop the robot when no frame came for this long (s)."""
+    camera_lost: float = 2.0
+    """End the run when no frame came for this long (s)."""
+    max_cycle: float = 0.1
+    """A cycle (frame stamp to command) longer than this sends zero; 0: no check (simulation,
+    where time is simulated)."""
+
+    def __post_init__(self) -> None:
+        if self.frame_timeout <= 0 or self.camera_lost < self.frame_timeout:
+            raise InputError("frame_timeout must be positive and camera_lost >= frame_timeout")
+
+
+@dataclass
+class Cycle:
+    """One frame's record."""
+
+    frame: CameraFrame
+    result: StepResult
+    T_base_camera: Array | None
+    sent: Array
+    overrun: bool
+    cycle_s: float
+
+
+@dataclass
+class LoopSummary:
+    frames: int = 0
+    trusted: int = 0
+    sent: int = 0
+    ended: str = ""
+    """Why the loop ended: at goal, duration, frames, end of recording, camera stopped, stopped
+    (callback), interrupted, or the error."""
+    at_goal: bool = False
+    final_error: list[float] | None = None
+    """(translation m, rotation rad) of the last trusted estimate."""
+    reasons: dict[str, int] = field(default_factory=dict)
+    """Refusals by reason."""
+    overruns: int = 0
+    camera_timeouts: int = 0
+    median_cycle_ms: float = math.nan
+    loop_rate_hz: float = math.nan
+
+
+class CycleLog:
+    """A JSON Lines log of a servo run. `extra` fields are added to the header."""
+
+    def __init__(self, path: str | Path, **header: Any) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f: IO[str] | None = self.path.open("w")
+        self.write({"format": LOG_FORMAT, "format_version": LOG_VERSION, **header})
+
+    def write(self, record: dict[str, Any]) -> None:
+        if self._f is None:
+            return
+        self._f.write(json.dumps(record, default=json_default) + "\n")
+        self._f.flush()  # a crash keeps every cycle logged so far
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+
+def cycle_record(c: Cycle, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    r = c.result
+    icp = r.icp
+    rec: dict[str, Any] = {
+        "stamp": c.frame.stamp,
+        "number": c.frame.number,
+        "trusted": r.trusted,
+        "reason": r.reason,
+        "at_goal": r.at_goal,
+        "twist": r.twist.tolist(),
+        "sent": c.sent.tolist(),
+        "overrun": c.overrun,
+        "cycle_ms": 1000 * c.cycle_s,
+        "timings_ms": {k: 1000 * v for k, v in r.timings.items()},
+        "T_ref_cur": None if r.T_ref_cur is None else r.T_ref_cur.tolist(),
+        "error": None if r.error is None else r.error.tolist(),
+        "T_base_camera": None if c.T_base_camera is None else c.T_base_camera.tolist(),
+    }
+    if icp is not None:
+        rec["icp"] = {
+            "converged": icp.converged,
+            "fitness": icp.fitness,
+            "overlap": icp.overlap,
+            "inlier_rmse": icp.inlier_rmse,
+            "correspondences": icp.correspondences,
+            "iterations": icp.iterations,
+            "reason": icp.reason,
+        }
+    if extra:
+        rec.update(extra)
+    return rec
+
+
+def run_loop(
+    servo: Servo,
+    source: CameraSource,
+    robot: Robot | None,
+    config: LoopConfig | None = None,
+    *,
+    log: CycleLog | None = None,
+    on_cycle: Callable[[Cycle], dict[str, Any] | bool | None] | None = None,
+) -> LoopSummary:
+    """Runs the servo until the goal is held, the frames end or a limit is reached.
+
+    `robot` None: no robot (replay of frames that carry their recorded pose; nothing is sent).
+    `on_cycle(cycle)` may return a dict of extra fields for the cycle's log record, or True to
+    end the run."""
+    cfg = config or LoopConfig()
+    summary = LoopSummary()
+    cycles_ms: list[float] = []
+    first_stamp: float | None = None
+    last_stamp = math.nan
+    at_goal_since: float | None = None
+    no_frame_since: float | None = None
+    send = robot is not None and not cfg.dry_run
+    try:
+        while True:
+            frame = source.read(timeout=cfg.frame_timeout)
+            if frame is None:
+                if source.ended:
+                    summary.ended = "end of recording"
+                    break
+                summary.camera_timeouts += 1
+                now = time.monotonic()
+                no_frame_since = now if no_frame_since is None else no_frame_since
+                if send:
+                    assert robot is not None
+                    robot.stop(f"no frame for {cfg.frame_timeout} s")
+                if log:
+                    log.write({"event": "no frame", "after_s": now - no_frame_since})
+                if now - no_frame_since >= cfg.camera_lost:
+                    summary.ended = "camera stopped"
+                    break
+                continue
+            no_frame_since = None
+            T_base_camera = frame.T_base_camera if robot is None else robot.T_base_camera()
+            r = servo.step_depth(frame.depth, frame.stamp, T_base_camera, now=source.now())
+            cycle_s = source.now() - frame.stamp if cfg.max_cycle > 0 else sum(r.timings.values())
+            overrun = cfg.max_cycle > 0 and cycle_s > cfg.max_cycle
+            twist = np.zeros(6) if overrun else r.twist
+            sent = np.zeros(6)
+            if send:
+                assert robot is not None
+                sent = robot.command(twist)
+            cycle = Cycle(frame, r, T_base_camera, sent, overrun, cycle_s)
+            extra = on_cycle(cycle) if on_cycle else None
+            if log:
+                log.write(cycle_record(cycle, extra if isinstance(extra, dict) else None))
+
+            summary.frames += 1
+            summary.trusted += int(r.trusted)
+            summary.sent += int(bool(np.any(sent)))
+            summary.overruns += int(overrun)
+            cycles_ms.append(1000 * cycle_s)
+            if not r.trusted:
+                key = r.reason.split(":")[0]
+                summary.reasons[key] = summary.reasons.get(key, 0) + 1
+            elif r.T_ref_cur is not None:
+                summary.final_error = list(pose_error(r.T_ref_cur, np.eye(4)))
+            first_stamp = frame.stamp if first_stamp is None else first_stamp
+            last_stamp = frame.stamp
+            if r.trusted:
+                summary.at_goal = r.at_goal
+                if r.at_goal:
+                    at_goal_since = frame.stamp if at_goal_since is None else at_goal_since
+                else:
+                    at_goal_since = None
+            if extra is True:
+                summary.ended = "stopped"
+                break
+            if cfg.settle > 0 and at_goal_since is not None:
+                if frame.stamp - at_goal_since >= cfg.settle:
+                    summary.ended = "at goal"
+                    break
+            if cfg.duration > 0 and frame.stamp - first_stamp >= cfg.duration:
+                summary.ended = "duration"
+                break
+            if cfg.max_frames and summary.frames >= cfg.max_frames:
+                summary.ended = "frames"
+                break
+    except KeyboardInterrupt:
+        summary.ended = "interrupted"
+    except Exception as exc:
+        summary.ended = f"error: {exc}"
+        raise
+    finally:
+        if robot is not None:
+            robot.stop(f"loop ended: {summary.ended}")
+        if cycles_ms:
+            summary.median_cycle_ms = float(np.median(cycles_ms))
+        if first_stamp is not None and last_stamp > first_stamp:
+            summary.loop_rate_hz = (summary.frames - 1) / (last_stamp - first_stamp)
+        if log:
+            log.write({"event": "end", "summary": summary.__dict__})
+    return summary
+
+
+# ----------------------------------------------------------------------------- reading logs
+def read_log(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]], dict[str, Any]]:
+    """(header, cycle records, summary or {}) of a servo log; a log cut short by a crash reads
+    up to its last whole line."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such log")
+    header: dict[str, Any] | None = None
+    cycles, summary = [], {}
+    for n, line in enumerate(path.read_text().splitlines()):
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            break  # a partial last line
+        if n == 0:
+            if rec.get("format") != LOG_FORMAT:
+                raise InputError(f"{path}: not a vinetwin servo log")
+            if int(rec.get("format_version", 0)) > LOG_VERSION:
+                raise InputError(
+                    f"{path}: log version {rec['format_version']} is newer than this vinetwin "
+                    f"reads ({LOG_VERSION})"
+                )
+            header = rec
+        elif rec.get("event") == "end":
+            summary = rec.get("summary", {})
+        elif "stamp" in rec:
+            cycles.append(rec)
+    if header is None:
+        raise InputError(f"{path}: empty log")
+    return header, cycles, summary
+
+
+def log_as_campaign(paths: list[str | Path]) -> dict[str, Any]:
+    """Servo logs as the campaign report's structure (one 'grid' run per log, each its own
+    start column), for `report.plot_errors` / `plot_trajectories`. The error is the true one
+    where the log has it (simulation), else the servo's estimate; the goal is where the last
+    trusted estimate puts the reference camera."""
+    runs, starts, twins = [], [], set()
+    for i, p in enumerate(paths):
+        header, cycles, summary = read_log(p)
+        twins.add(str(header.get("twin", "")))
+        t0 = cycles[0]["stamp"] if cycles else 0.0
+        series: dict[str, list[Any]] = {
+            "t": [], "error_t": [], "error_r": [], "trusted": [], "position": []
+        }  # fmt: skip
+        goal = np.eye(4)
+        est: Array | None = None
+        for c in cycles:
+            if c.get("true_error") is not None:
+                et, er = c["true_error"]
+            elif c.get("T_ref_cur") is not None:
+                et, er = pose_error(np.asarray(c["T_ref_cur"]), np.eye(4))
+            else:
+                continue
+            series["t"].append(c["stamp"] - t0)
+            series["error_t"].append(et)
+            series["error_r"].append(er)
+            series["trusted"].append(c["trusted"])
+            base = c.get("T_base_camera")
+            series["position"].append((np.asarray(base)[:3, 3] if base else np.zeros(3)).tolist())
+            if c["trusted"] and base is not None and c.get("T_ref_cur") is not None:
+                est = np.asarray(base) @ invert(np.asarray(c["T_ref_cur"]))
+        if est is not None:
+            goal = est
+        start = (series["error_t"][0], series["error_r"][0]) if series["t"] else (0.0, 0.0)
+        starts.append(start)
+        runs.append(
+            {
+                "key": f"log/{Path(p).stem}",
+                "group": "grid",
+                "start_index": i,
+                "goal": goal.tolist(),
+                "summary": {"variant": header.get("variant", "?"), **summary},
+                "series": series,
+            }
+        )
+    return {"twin": ", ".join(sorted(twins)), "starts": starts, "runs": runs}
