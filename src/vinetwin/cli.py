@@ -357,6 +357,142 @@ class Validate:
 
 
 @dataclass(frozen=True, kw_only=True)
+class ServoCmd:
+    """Servo the camera to one pruning pose: camera frames -> perception -> ICP (kinematic guess)
+    -> PBVS -> guarded robot command, every cycle logged. In simulation (--camera sim --robot
+    sim|mujoco), replayed without a robot (--camera folder:DIR|bag:FILE --robot none) or on
+    hardware (--camera realsense --robot franka:HOST); see docs/hardware.md."""
+
+    twin: Path
+    """Twin folder."""
+    pose: str = ""
+    """Pruning pose id (default: the twin's first)."""
+    camera: str = "sim"
+    """realsense[:SERIAL] (a live D405), bag:FILE (a RealSense recording), folder:DIR (a capture
+    folder), or sim (rendered from the twin)."""
+    robot: str = "sim"
+    """franka:HOST (franky-control), sim (a free-flying camera), mujoco (the MuJoCo Panda) or
+    none (compute and log only)."""
+    variant: VariantChoice = "point_to_plane"
+    """ICP variant."""
+    dry_run: bool = False
+    """Compute and log twists; send none (the robot is only read)."""
+    log: Path | None = None
+    """Cycle log (JSON Lines; default TWIN/servo/POSE-DATE.jsonl)."""
+    record: Path | None = None
+    """Also write the frames, with stamps and robot poses, as a capture folder (replayable with
+    --camera folder:DIR --robot none)."""
+    duration: float = 30.0
+    """End after this many seconds; 0: no limit."""
+    settle: float = 2.0
+    """End once at the goal (2 mm, 0.01 rad) for this long (s); 0: never."""
+    max_linear: float = 0.05
+    """Camera speed limit (m/s) of the servo and of the robot adapter."""
+    max_angular: float = 0.25
+    """rad/s."""
+    watchdog: float = 0.2
+    """Stop the robot when no command came for this long (s)."""
+    max_cycle: float = 0.1
+    """Send zero when a frame took longer than this from capture to command (s)."""
+    width: int = 848
+    """Live camera: depth width (848 or 1280 for the twin's D405 presets)."""
+    height: int = 480
+    fps: int = 30
+    """Live camera: frames per second (30, 60 or 90)."""
+    rate: float | None = None
+    """Playback: folder frames per second (default: as fast as read); bag 0: as fast as read."""
+    camera_rate: float = 30.0
+    """Simulation: camera frames per second."""
+    robot_model: str = ""
+    """With --robot mujoco: a Panda model folder or MJCF file (default: vinetwin's own)."""
+    start_translation: float = 0.04
+    """Simulation: start this far from the pruning pose (m)."""
+    start_rotation: float = 0.1
+    """Simulation: and this angle (rad)."""
+    dynamics_factor: float = 0.2
+    """franka: fraction of the robot's velocity, acceleration and jerk limits."""
+    no_realtime: bool = False
+    """franka: do not demand a real-time kernel (a simulated Franka, bench tests)."""
+    seed: int = 0
+
+    def run(self) -> None:
+        from vinetwin.servo.loop import LoopConfig
+        from vinetwin.servo.robot import CommandLimits
+        from vinetwin.servo.runner import RunnerConfig, run_pose
+        from vinetwin.servo.sim import SimConfig
+        from vinetwin.twin.model import Twin
+
+        twin = Twin.load(self.twin)
+        cfg = RunnerConfig(
+            pose=self.pose,
+            camera=self.camera,
+            robot=self.robot,
+            robot_model=self.robot_model,
+            servo=SimConfig(
+                variant=self.variant,
+                max_linear=self.max_linear,
+                max_angular=self.max_angular,
+                camera_rate=self.camera_rate,
+                duration=max(self.duration, 1e-3),
+                seed=self.seed,
+            ),
+            limits=CommandLimits(
+                max_linear=self.max_linear, max_angular=self.max_angular, watchdog=self.watchdog
+            ),
+            loop=LoopConfig(
+                dry_run=self.dry_run,
+                duration=self.duration,
+                settle=self.settle,
+                max_cycle=self.max_cycle,
+            ),
+            start_translation=self.start_translation,
+            start_rotation=self.start_rotation,
+            width=self.width,
+            height=self.height,
+            fps=self.fps,
+            rate=self.rate,
+            realtime=not self.no_realtime,
+            dynamics_factor=self.dynamics_factor,
+        )
+        summary, path = run_pose(twin, cfg, log_path=self.log, record=self.record)
+        err = summary.final_error
+        print(
+            f"{summary.frames} frames, {summary.trusted} trusted, {summary.sent} commands sent; "
+            f"ended: {summary.ended}; at goal: {summary.at_goal}"
+        )
+        if err is not None:
+            print(f"last estimated error: {1000 * err[0]:.2f} mm, {err[1]:.4f} rad")
+        if summary.reasons:
+            print("refused: " + ", ".join(f"{k} x{v}" for k, v in summary.reasons.items()))
+        print(
+            f"median cycle {summary.median_cycle_ms:.1f} ms, {summary.loop_rate_hz:.1f} Hz; "
+            f"overruns {summary.overruns}, camera timeouts {summary.camera_timeouts}"
+        )
+        print(f"log: {path}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServoPlot:
+    """Plot servo logs (vinetwin servo --log) with the campaign report's figures: error against
+    time and the camera's path."""
+
+    logs: Annotated[tuple[Path, ...], tyro.conf.Positional]
+    """One or more .jsonl logs."""
+    out: Path = Path("servo-plots")
+    """Folder for errors.png and trajectories.png."""
+
+    def run(self) -> None:
+        from vinetwin.servo.loop import log_as_campaign
+        from vinetwin.servo.report import plot_errors, plot_trajectories
+
+        data = log_as_campaign(list(self.logs))
+        self.out.mkdir(parents=True, exist_ok=True)
+        plot_errors(data, self.out / "errors.png")
+        plot_trajectories(data, self.out / "trajectories.png")
+        print(f"wrote {self.out / 'errors.png'} and {self.out / 'trajectories.png'}")
+
+
+@dataclass(frozen=True, kw_only=True)
 class CaptureSynthetic:
     """Render a synthetic RGB-D capture of a twin's mesh (D405 depth with its noise, textured
     colour, ground-truth poses) into a capture folder."""
@@ -698,6 +834,8 @@ COMMANDS: dict[str, type] = {
     "web": Web,
     "capture-synthetic": CaptureSynthetic,
     "import-recording": ImportRecording,
+    "servo": ServoCmd,
+    "servo-plot": ServoPlot,
     "reconstruct": Reconstruct,
 }
 

@@ -28,61 +28,99 @@ def _rs() -> Any:
     return rs
 
 
+class SoftwareD405:
+    """A pyrealsense2 software device that presents a D405's depth (z16) and colour (rgb8)
+    streams at the camera's size and `fps`, with the camera's intrinsics and depth unit; frames
+    are pushed in with `inject`. It lets the live-camera and recording code run through the real
+    library without a camera (tests, demos). `recorder(path)` records what is injected."""
+
+    def __init__(self, camera: CameraModel, fps: int = 30, depth_unit: float = 1e-4) -> None:
+        rs = _rs()
+        self._rs = rs
+        self.camera = camera
+        self.fps = fps
+        intr = rs.intrinsics()
+        intr.width, intr.height = camera.width, camera.height
+        intr.fx, intr.fy, intr.ppx, intr.ppy = camera.fx, camera.fy, camera.cx, camera.cy
+        intr.model = rs.distortion.none
+        intr.coeffs = [0.0] * 5
+        self.device = rs.software_device()
+        self.device.register_info(rs.camera_info.name, "Intel RealSense D405 (software)")
+        self.device.register_info(rs.camera_info.serial_number, "000000000405")
+        self.sensor = self.device.add_sensor("Stereo Module")
+        self.profiles = []
+        for kind, fmt, bpp, uid in (
+            (rs.stream.depth, rs.format.z16, 2, 0),
+            (rs.stream.color, rs.format.rgb8, 3, 1),
+        ):
+            vs = rs.video_stream()
+            vs.type, vs.index, vs.uid = kind, 0, uid
+            vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = camera.width, camera.height, fps, bpp, fmt
+            vs.intrinsics = intr
+            self.profiles.append(self.sensor.add_video_stream(vs))
+        ext = rs.extrinsics()
+        ext.rotation = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        ext.translation = [0.0, 0.0, 0.0]
+        self.profiles[0].register_extrinsics_to(self.profiles[1], ext)  # colour registered
+        self.sensor.add_read_only_option(rs.option.depth_units, float(depth_unit))
+        self.device.create_matcher(rs.matchers.dlr_c)  # depth and colour paired, as a D400's
+        self.number = 0
+
+    def recorder(self, path: str | Path) -> Any:
+        """Records every frame injected from now on (keep the returned object alive)."""
+        return self._rs.recorder(str(path), self.device)
+
+    def inject(
+        self,
+        counts: np.ndarray,
+        color: np.ndarray | None = None,
+        stamp_ms: float | None = None,
+        domain: str = "system_time",
+    ) -> None:
+        """Pushes one frame: depth counts (uint16 HxW), optional colour (uint8 HxWx3), its
+        timestamp in ms (default: now, on the host's clock) in the given timestamp domain."""
+        rs = self._rs
+        stamp = time.time() * 1000.0 if stamp_ms is None else stamp_ms
+        images: list[tuple[np.ndarray, Any, int]] = [
+            (np.ascontiguousarray(counts, dtype=np.uint16), self.profiles[0], 2)
+        ]
+        if color is not None:
+            images.append((np.ascontiguousarray(color, dtype=np.uint8), self.profiles[1], 3))
+        for img, prof, bpp in images:
+            frame = rs.software_video_frame()
+            frame.pixels = img
+            frame.stride = self.camera.width * bpp
+            frame.bpp = bpp
+            frame.timestamp = stamp
+            frame.domain = getattr(rs.timestamp_domain, domain)
+            frame.frame_number = self.number
+            frame.profile = prof.as_video_stream_profile()
+            self.sensor.on_video_frame(frame)
+        self.number += 1
+
+
 def write_recording(capture: Capture, path: str | Path) -> Path:
     """Writes the capture's frames (depth z16, colour rgb8) as a RealSense recording."""
-    rs = _rs()
     path = Path(path)
     if path.exists():
         path.unlink()
     cam = capture.camera
-    intr = rs.intrinsics()
-    intr.width, intr.height = cam.width, cam.height
-    intr.fx, intr.fy, intr.ppx, intr.ppy = cam.fx, cam.fy, cam.cx, cam.cy
-    intr.model = rs.distortion.none
-    intr.coeffs = [0.0] * 5
-    dev = rs.software_device()
-    sensor = dev.add_sensor("Stereo Module")
-    profiles = []
-    for kind, fmt, bpp, uid in (
-        (rs.stream.depth, rs.format.z16, 2, 0),
-        (rs.stream.color, rs.format.rgb8, 3, 1),
-    ):
-        vs = rs.video_stream()
-        vs.type, vs.index, vs.uid = kind, 0, uid
-        vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = cam.width, cam.height, 30, bpp, fmt
-        vs.intrinsics = intr
-        profiles.append(sensor.add_video_stream(vs))
-    ext = rs.extrinsics()
-    ext.rotation = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-    ext.translation = [0.0, 0.0, 0.0]
-    profiles[0].register_extrinsics_to(profiles[1], ext)  # colour registered to depth
-    sensor.add_read_only_option(rs.option.depth_units, float(capture.depth_unit))
-    recorder = rs.recorder(str(path), dev)
-    queue = rs.frame_queue(64)
-    sensor.open(profiles)
-    sensor.start(queue)
-
+    soft = SoftwareD405(cam, fps=30, depth_unit=capture.depth_unit)
+    recorder = soft.recorder(path)
+    queue = soft._rs.frame_queue(64)
+    soft.sensor.open(soft.profiles)
+    soft.sensor.start(queue)
     for i, f in enumerate(capture.frames):
-        depth = f.depth_counts()
         color = (
             np.ascontiguousarray(f.color())
             if f.color_path is not None
             else np.zeros((cam.height, cam.width, 3), np.uint8)
         )
-        for img, prof, bpp in ((depth, profiles[0], 2), (color, profiles[1], 3)):
-            frame = rs.software_video_frame()
-            frame.pixels = img
-            frame.stride = cam.width * bpp
-            frame.bpp = bpp
-            frame.timestamp = i * 1000.0 / 30
-            frame.domain = rs.timestamp_domain.hardware_clock
-            frame.frame_number = i
-            frame.profile = prof.as_video_stream_profile()
-            sensor.on_video_frame(frame)
+        soft.inject(f.depth_counts(), color, stamp_ms=i * 1000.0 / 30, domain="hardware_clock")
         time.sleep(0.01)
-    sensor.stop()
-    sensor.close()
-    del recorder, dev
+    soft.sensor.stop()
+    soft.sensor.close()
+    del recorder, soft
     if not path.exists():
         raise CaptureError(f"{path}: the recorder wrote nothing")
     return path

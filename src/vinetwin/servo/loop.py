@@ -59,8 +59,8 @@ class LoopConfig(JsonFields):
     camera_lost: float = 2.0
     """End the run when no frame came for this long (s)."""
     max_cycle: float = 0.1
-    """A cycle (frame stamp to command) longer than this sends zero; 0: no check (simulation,
-    where time is simulated)."""
+    """A frame whose command comes later than this after its capture (stamp) sends zero
+    instead; 0: no check (simulation, where time is simulated)."""
 
     def __post_init__(self) -> None:
         if self.frame_timeout <= 0 or self.camera_lost < self.frame_timeout:
@@ -77,6 +77,9 @@ class Cycle:
     sent: Array
     overrun: bool
     cycle_s: float
+    """Processing time, from the frame's delivery to the command (s)."""
+    latency_s: float
+    """From the frame's capture (stamp) to the command (s), on the source's clock."""
 
 
 @dataclass
@@ -132,6 +135,7 @@ def cycle_record(c: Cycle, extra: dict[str, Any] | None = None) -> dict[str, Any
         "sent": c.sent.tolist(),
         "overrun": c.overrun,
         "cycle_ms": 1000 * c.cycle_s,
+        "latency_ms": 1000 * c.latency_s,
         "timings_ms": {k: 1000 * v for k, v in r.timings.items()},
         "T_ref_cur": None if r.T_ref_cur is None else r.T_ref_cur.tolist(),
         "error": None if r.error is None else r.error.tolist(),
@@ -194,16 +198,18 @@ def run_loop(
                     break
                 continue
             no_frame_since = None
+            t_read = time.perf_counter()
             T_base_camera = frame.T_base_camera if robot is None else robot.T_base_camera()
             r = servo.step_depth(frame.depth, frame.stamp, T_base_camera, now=source.now())
-            cycle_s = source.now() - frame.stamp if cfg.max_cycle > 0 else sum(r.timings.values())
-            overrun = cfg.max_cycle > 0 and cycle_s > cfg.max_cycle
+            latency = source.now() - frame.stamp  # capture to command
+            overrun = cfg.max_cycle > 0 and latency > cfg.max_cycle
             twist = np.zeros(6) if overrun else r.twist
             sent = np.zeros(6)
             if send:
                 assert robot is not None
                 sent = robot.command(twist)
-            cycle = Cycle(frame, r, T_base_camera, sent, overrun, cycle_s)
+            cycle_s = time.perf_counter() - t_read
+            cycle = Cycle(frame, r, T_base_camera, sent, overrun, cycle_s, latency)
             extra = on_cycle(cycle) if on_cycle else None
             if log:
                 log.write(cycle_record(cycle, extra if isinstance(extra, dict) else None))

@@ -249,7 +249,7 @@ class RealSenseSource(CameraSource):
             opened.setdefault(id(sensor), (sensor, []))[1].append(prof)
         assert depth_profile is not None
         self.camera = _intrinsics_camera(depth_profile, camera)
-        self.depth_unit = float(depth_sensor.get_option(rs.option.depth_units))
+        self.depth_unit = float(f"{depth_sensor.get_option(rs.option.depth_units):.7g}")
         self.fps = fps
         self._align = rs.align(rs.stream.depth) if color else None
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=max(queue_size, 1))
@@ -284,15 +284,23 @@ class RealSenseSource(CameraSource):
 
     def read(self, timeout: float = 1.0) -> CameraFrame | None:
         rs = self._rs
-        ok, fs = self._syncer.try_wait_for_frames(max(int(timeout * 1000), 1))
-        if not ok:
-            return None
-        arrival = time.monotonic()
-        if self._align is not None:
-            fs = self._align.process(fs)
-        d = fs.get_depth_frame()
-        if not d:
-            return None
+        deadline = time.monotonic() + timeout
+        while True:  # a set without depth (a lone colour frame) is skipped
+            left = deadline - time.monotonic()
+            ok, fs = self._syncer.try_wait_for_frames(max(int(left * 1000), 1))
+            if not ok:
+                return None
+            arrival = time.monotonic()
+            if self._align is not None and fs.size() > 1:
+                try:
+                    fs = self._align.process(fs)
+                except RuntimeError as exc:
+                    raise SourceError(f"aligning colour to depth failed: {exc}") from exc
+            d = fs.get_depth_frame()
+            if d:
+                break
+            if left <= 0:
+                return None
         counts = np.asanyarray(d.get_data()).copy()
         color = None
         if self._align is not None:
