@@ -80,6 +80,7 @@ def test_slow_processing_holds_each_twist_longer(vine_views: VineViews) -> None:
     fast, slow = runs[1 / 30].summary(), runs[0.25].summary()
     assert fast["loop_rate_hz"] == pytest.approx(30, rel=0.02)
     assert slow["loop_rate_hz"] == pytest.approx(4, rel=0.05)
+
     # both settle on the same ICP bias (about 0.3 mm); the slow loop jitters around it more
     def jitter(run: SimRun) -> float:
         t, e = np.asarray(run.t), np.asarray(run.error_t)

@@ -168,8 +168,8 @@ def run_loop(
     """Runs the servo until the goal is held, the frames end or a limit is reached.
 
     `robot` None: no robot (replay of frames that carry their recorded pose; nothing is sent).
-    `on_cycle(cycle)` may return a dict of extra fields for the cycle's log record, or True to
-    end the run."""
+    `on_cycle(cycle)` may return a dict of extra fields for the cycle's log record (with
+    "end_run": True to end the run after this cycle), or True to end it."""
     cfg = config or LoopConfig()
     summary = LoopSummary()
     cycles_ms: list[float] = []
@@ -211,6 +211,9 @@ def run_loop(
             cycle_s = time.perf_counter() - t_read
             cycle = Cycle(frame, r, T_base_camera, sent, overrun, cycle_s, latency)
             extra = on_cycle(cycle) if on_cycle else None
+            end = extra is True
+            if isinstance(extra, dict):
+                end = bool(extra.pop("end_run", False))
             if log:
                 log.write(cycle_record(cycle, extra if isinstance(extra, dict) else None))
 
@@ -232,7 +235,7 @@ def run_loop(
                     at_goal_since = frame.stamp if at_goal_since is None else at_goal_since
                 else:
                     at_goal_since = None
-            if extra is True:
+            if end:
                 summary.ended = "stopped"
                 break
             if cfg.settle > 0 and at_goal_since is not None:

@@ -26,6 +26,7 @@ import math
 import threading
 import time
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -118,8 +119,8 @@ class Robot(ABC):
         self.last_sent = np.zeros(6)
         self.last_command_time = -math.inf
         self.moving = False
-        self.events: list[tuple[float, str]] = []
-        """(time, what) of every stop and every guarded change."""
+        self.events: deque[tuple[float, str]] = deque(maxlen=1000)
+        """(time, what) of the latest stops and guarded changes."""
         self._lock = threading.RLock()
         self._closed = threading.Event()
         self._thread: threading.Thread | None = None

@@ -391,7 +391,7 @@ def simulate(
         )
     at_goal_since: list[float | None] = [None]
 
-    def on_cycle(c: Cycle) -> dict[str, Any] | bool:
+    def on_cycle(c: Cycle) -> dict[str, Any]:
         r, t = c.result, c.frame.stamp
         et, er = pose_error(source.T_rel, goal)
         run.t.append(t)
@@ -405,16 +405,15 @@ def simulate(
             run.reasons[key] = run.reasons.get(key, 0) + 1
         if writer is not None:
             writer.add(c.frame.counts, None, c.T_base_camera, t)
+        end = t + 1e-9 >= cfg.duration
         if cfg.settle > 0:  # settled at the goal (and past the disturbance)
             if r.trusted and r.at_goal:
                 since = at_goal_since[0] = t if at_goal_since[0] is None else at_goal_since[0]
                 if t - since >= cfg.settle and (dist.time < 0 or t > dist.time + cfg.settle):
-                    return True
+                    end = True
             elif r.trusted or at_goal_since[0] is None:
                 at_goal_since[0] = None
-        if t + 1e-9 >= cfg.duration:
-            return True
-        return {"true_error": [et, er]}
+        return {"true_error": [et, er], "end_run": end}
 
     wall0 = time.perf_counter()
     try:
