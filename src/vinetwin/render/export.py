@@ -20,7 +20,6 @@ import logging
 import os
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -31,6 +30,15 @@ import vinetwin
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import PerceptionConfig
 from vinetwin.errors import InputError, VinetwinError
+from vinetwin.executor import (
+    ExecutorConfig,
+    clear_worker_cache,
+    fault_point,
+    run_unordered,
+    worker_cache,
+    worker_threads,
+    workers_used,
+)
 from vinetwin.render.backends import BACKENDS, DepthBackend, get_backend
 from vinetwin.render.reference import (
     REFERENCE_FORMAT,
@@ -57,12 +65,16 @@ class PoseResult:
     seconds: float = 0.0
     error: str = ""
     warning: str = ""
+    twin: str = ""
+    """The twin folder (set when exporting several)."""
 
 
 @dataclass
 class ExportReport:
     results: list[PoseResult] = field(default_factory=list)
     seconds: float = 0.0
+    workers: int = 1
+    executor: str = "local"
 
     def count(self, status: Status) -> int:
         return sum(r.status == status for r in self.results)
@@ -74,49 +86,46 @@ class ExportReport:
 
 @dataclass(frozen=True)
 class _Job:
+    twin: str
     pose_id: str
     T_vine_camera: list[list[float]]
     seed: int
     out_dir: str
     meta: dict[str, Any]
+    mesh_path: str
+    backend: str
+    camera: dict[str, Any]
+    perception: dict[str, Any]
+    sensor: dict[str, Any]
 
 
 # ----------------------------------------------------------------------------- workers
-_WORKER: dict[str, Any] = {}
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+def _worker_backend(job: _Job) -> DepthBackend:
+    def build() -> DepthBackend:
+        mesh = load_mesh(job.mesh_path)
+        cam = CameraModel.from_dict(job.camera)
+        kwargs = {"threads": worker_threads()} if job.backend == "open3d" else {}
+        return get_backend(job.backend, mesh.vertices, mesh.faces, cam, **kwargs)
 
-
-def _init_worker(
-    mesh_path: str,
-    camera: dict[str, Any],
-    backend: str,
-    perception: dict[str, Any],
-    sensor: dict[str, Any],
-    threads: int,
-) -> None:
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    mesh = load_mesh(mesh_path)
-    cam = CameraModel.from_dict(camera)
-    kwargs = {"threads": threads} if backend == "open3d" else {}
-    _WORKER["backend"] = get_backend(backend, mesh.vertices, mesh.faces, cam, **kwargs)
-    _WORKER["perception"] = PerceptionConfig.from_dict(perception)
-    _WORKER["sensor"] = SensorConfig.from_dict(sensor)
+    key = ("render", job.mesh_path, job.meta["mesh_sha256"], job.backend, json.dumps(job.camera))
+    return worker_cache(key, build)
 
 
 def _run_job(job: _Job) -> PoseResult:
     t0 = time.perf_counter()
+    key = f"{job.twin}/{job.pose_id}"
     try:
-        backend: DepthBackend = _WORKER["backend"]
         ref = render_reference(
-            backend,
+            _worker_backend(job),
             np.asarray(job.T_vine_camera),
-            _WORKER["perception"],
-            _WORKER["sensor"],
+            PerceptionConfig.from_dict(job.perception),
+            SensorConfig.from_dict(job.sensor),
             job.seed,
         )
         out = Path(job.out_dir)
+        fault_point(key, "render")
         write_ply(out / f"{job.pose_id}.ply", ref.cloud)
+        fault_point(key, "ply")
         write_pcd(out / f"{job.pose_id}.pcd", ref.cloud)
         warning = "" if len(ref.cloud) else "the view sees nothing: empty reference cloud"
         meta = {
@@ -127,16 +136,19 @@ def _run_job(job: _Job) -> PoseResult:
             "warning": warning,
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         }
+        # the sidecar is written last: a reference is current only once it exists
         atomic_write_text(out / f"{job.pose_id}.json", json.dumps(meta, indent=1) + "\n")
         return PoseResult(
-            job.pose_id, "rendered", len(ref.cloud), time.perf_counter() - t0, warning=warning
-        )
+            job.pose_id, "rendered", len(ref.cloud), time.perf_counter() - t0, warning=warning,
+            twin=job.twin,
+        )  # fmt: skip
     except Exception as exc:  # isolate one pose's failure from the others
         return PoseResult(
             job.pose_id,
             "failed",
             seconds=time.perf_counter() - t0,
             error=f"{type(exc).__name__}: {exc}",
+            twin=job.twin,
         )
 
 
@@ -153,35 +165,20 @@ def _is_current(out: Path, pose_id: str, digest: str) -> bool:
         return False
 
 
-def export_references(
+def plan_export(
     twin: Twin,
     pose_ids: Sequence[str] | None = None,
     *,
     backend: str = "open3d",
-    workers: int = 0,
     seed: int = 0,
     sensor: SensorConfig | None = None,
     force: bool = False,
-    progress: Callable[[PoseResult, int, int], None] | None = None,
-) -> ExportReport:
-    """Renders the reference cloud of each selected pose into `twin.references_dir`.
-
-    Args:
-        twin: the loaded twin.
-        pose_ids: poses to export (default: all).
-        backend: depth backend (open3d, pyrender, mujoco).
-        workers: worker processes; 1 renders in this process; 0 chooses: 1 for open3d (its
-            ray caster already uses every core), one per core for pyrender and mujoco.
-        seed: base noise seed; each pose derives its own from it and its id.
-        sensor: D405 model settings (default SensorConfig()).
-        force: re-render even references whose inputs did not change.
-        progress: called after each pose with (result, done, total).
-    """
+) -> tuple[list[PoseResult], list[_Job]]:
+    """The poses already current (skipped) and the jobs that render the others."""
     if backend not in BACKENDS:
         raise InputError(
             f"unknown render backend '{backend}'; choose one of: {', '.join(BACKENDS)}"
         )
-    t_start = time.perf_counter()
     sensor = sensor or SensorConfig()
     ids = list(pose_ids) if pose_ids else [p.id for p in twin.poses]
     poses = [twin.pose(i) for i in ids]  # raises TwinError naming an unknown id
@@ -189,17 +186,16 @@ def export_references(
     mesh_sha = file_sha256(twin.mesh_path)
     out = twin.references_dir
     out.mkdir(exist_ok=True)
-    report = ExportReport()
+    skipped: list[PoseResult] = []
     jobs: list[_Job] = []
+    name = str(twin.root)
     for p in poses:
         s = pose_seed(seed, p.id)
         digest = inputs_digest(
             mesh_sha, p.T_vine_camera, twin.camera, twin.perception, sensor, backend, s
         )
         if not force and _is_current(out, p.id, digest):
-            report.results.append(PoseResult(p.id, "skipped"))
-            if progress:
-                progress(report.results[-1], len(report.results), len(poses))
+            skipped.append(PoseResult(p.id, "skipped", twin=name))
             continue
         meta = {
             "reference_format": REFERENCE_FORMAT,
@@ -218,79 +214,124 @@ def export_references(
             "inputs_sha256": digest,
             "vinetwin_version": vinetwin.__version__,
         }
-        jobs.append(_Job(p.id, np.asarray(p.T_vine_camera).tolist(), s, str(out), meta))
-
-    if workers <= 0:
-        workers = 1 if backend == "open3d" else max(1, os.cpu_count() or 1)
-    init_args = (
-        str(twin.mesh_path),
-        twin.camera.to_dict(),
-        backend,
-        twin.perception.to_dict(),
-        sensor.to_dict(),
-    )
-    done = len(report.results)
-    if jobs and workers <= 1:
-        _init_worker(*init_args, 0)
-        try:
-            for job in jobs:
-                r = _run_job(job)
-                report.results.append(r)
-                done += 1
-                if progress:
-                    progress(r, done, len(poses))
-        finally:
-            _WORKER.pop("backend").close()
-    elif jobs:
-        import multiprocessing as mp
-
-        n = min(workers, len(jobs))
-        ctx = mp.get_context("spawn")
-        threads = max(1, (os.cpu_count() or 1) // n)
-        saved = {k: os.environ.get(k) for k in _THREAD_VARS}
-        os.environ.update({k: str(threads) for k in _THREAD_VARS})  # inherited by spawned workers
-        try:
-            pool = ProcessPoolExecutor(
-                n, mp_context=ctx, initializer=_init_worker, initargs=(*init_args, threads)
+        jobs.append(
+            _Job(
+                name, p.id, np.asarray(p.T_vine_camera).tolist(), s, str(out), meta,
+                str(twin.mesh_path), backend, twin.camera.to_dict(), twin.perception.to_dict(),
+                sensor.to_dict(),
             )
-        finally:
-            for k, v in saved.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
-        with pool:
-            pending: set[Future[PoseResult]] = set()
-            queue = list(jobs)
-            by_future: dict[Future[PoseResult], _Job] = {}
-            # keep a bounded number in flight so progress is honest and memory flat
-            while queue or pending:
-                while queue and len(pending) < 4 * n:
-                    job = queue.pop(0)
-                    fut = pool.submit(_run_job, job)
-                    by_future[fut] = job
-                    pending.add(fut)
-                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for fut in finished:
-                    job = by_future.pop(fut)
-                    try:
-                        r = fut.result()
-                    except Exception as exc:  # a worker that died (killed, crashed)
-                        r = PoseResult(
-                            job.pose_id, "failed", error=f"worker died: {type(exc).__name__}: {exc}"
-                        )
-                    report.results.append(r)
-                    done += 1
-                    if progress:
-                        progress(r, done, len(poses))
+        )  # fmt: skip
+    return skipped, jobs
+
+
+def export_many(
+    twins: Sequence[Twin],
+    *,
+    backend: str = "open3d",
+    workers: int = 0,
+    seed: int = 0,
+    sensor: SensorConfig | None = None,
+    force: bool = False,
+    executor: ExecutorConfig | None = None,
+    progress: Callable[[PoseResult, int, int], None] | None = None,
+) -> ExportReport:
+    """Exports every pose of every twin in one pool of workers (a vineyard: a folder of twin
+    folders). See `export_references` for the arguments."""
+    t_start = time.perf_counter()
+    skipped: list[PoseResult] = []
+    jobs: list[_Job] = []
+    for twin in twins:
+        sk, js = plan_export(twin, backend=backend, seed=seed, sensor=sensor, force=force)
+        skipped += sk
+        jobs += js
+    report = _run_planned(skipped, jobs, backend, workers, executor, progress)
+    order = {
+        (str(t.root), p.id): k for k, (t, p) in enumerate((t, p) for t in twins for p in t.poses)
+    }
+    report.results.sort(key=lambda r: order.get((r.twin, r.pose_id), 0))
+    return _finish(report, t_start, several=len(twins) > 1)
+
+
+def export_references(
+    twin: Twin,
+    pose_ids: Sequence[str] | None = None,
+    *,
+    backend: str = "open3d",
+    workers: int = 0,
+    seed: int = 0,
+    sensor: SensorConfig | None = None,
+    force: bool = False,
+    executor: ExecutorConfig | None = None,
+    progress: Callable[[PoseResult, int, int], None] | None = None,
+) -> ExportReport:
+    """Renders the reference cloud of each selected pose into `twin.references_dir`.
+
+    Args:
+        twin: the loaded twin.
+        pose_ids: poses to export (default: all).
+        backend: depth backend (open3d, pyrender, mujoco).
+        workers: worker processes; 1 renders in this process; 0 chooses: 1 for open3d (its
+            ray caster already uses every core), one per core for pyrender and mujoco.
+        seed: base noise seed; each pose derives its own from it and its id.
+        sensor: D405 model settings (default SensorConfig()).
+        force: re-render even references whose inputs did not change.
+        executor: where the jobs run (a local pool by default, or Ray); its `workers`
+            replaces the argument.
+        progress: called after each pose with (result, done, total).
+    """
+    t_start = time.perf_counter()
+    skipped, jobs = plan_export(
+        twin, pose_ids, backend=backend, seed=seed, sensor=sensor, force=force
+    )
+    report = _run_planned(skipped, jobs, backend, workers, executor, progress)
+    ids = list(pose_ids) if pose_ids else [p.id for p in twin.poses]
     order = {pid: i for i, pid in enumerate(ids)}
     report.results.sort(key=lambda r: order[r.pose_id])
+    return _finish(report, t_start, several=False)
+
+
+def _run_planned(
+    skipped: list[PoseResult],
+    jobs: list[_Job],
+    backend: str,
+    workers: int,
+    executor: ExecutorConfig | None,
+    progress: Callable[[PoseResult, int, int], None] | None,
+) -> ExportReport:
+    report = ExportReport(results=list(skipped))
+    total = len(skipped) + len(jobs)
+    if progress:
+        for k, r in enumerate(report.results):
+            progress(r, k + 1, total)
+    if executor is None:
+        if workers <= 0:  # Open3D's ray caster already uses every core from one process
+            workers = 1 if backend == "open3d" else max(1, os.cpu_count() or 1)
+        executor = ExecutorConfig(workers=workers)
+    report.executor = executor.kind
+    report.workers = workers_used(executor, len(jobs))
+    try:
+        for outcome in run_unordered(_run_job, jobs, executor):
+            job = jobs[outcome.index]
+            r = outcome.value if outcome.ok else PoseResult(
+                job.pose_id, "failed", error=outcome.error, twin=job.twin
+            )  # fmt: skip
+            report.results.append(r)
+            if progress:
+                progress(r, len(report.results), total)
+    finally:
+        if executor.kind == "local" and report.workers <= 1:
+            clear_worker_cache()  # the renderers built in this process
+    return report
+
+
+def _finish(report: ExportReport, t_start: float, several: bool) -> ExportReport:
     report.seconds = time.perf_counter() - t_start
     for r in report.results:
+        where = f"{r.twin}: pose {r.pose_id}" if several else f"pose {r.pose_id}"
         if r.status == "failed":
-            log.error("pose %s failed: %s", r.pose_id, r.error)
+            log.error("%s failed: %s", where, r.error)
         elif r.warning:
-            log.warning("pose %s: %s", r.pose_id, r.warning)
+            log.warning("%s: %s", where, r.warning)
     return report
 
 

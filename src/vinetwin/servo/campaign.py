@@ -16,11 +16,9 @@ starts from the same pose). Runs go to `workers` processes, each with its own re
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
-import os
+import logging
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,10 +26,20 @@ import numpy as np
 
 from vinetwin._config import JsonFields, json_default
 from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
-from vinetwin.errors import InputError
-from vinetwin.render.reference import pose_seed
+from vinetwin.errors import InputError, VinetwinError
+from vinetwin.executor import (
+    ExecutorConfig,
+    clear_worker_cache,
+    run_unordered,
+    worker_cache,
+    worker_threads,
+    workers_used,
+)
+from vinetwin.render.reference import file_sha256, pose_seed
 from vinetwin.servo.sim import Disturbance, SimConfig, SimRun, simulate, start_pose
 from vinetwin.twin.model import Twin, atomic_write_text, load_mesh
+
+log = logging.getLogger(__name__)
 
 #: Initial errors (translation m, rotation rad) of the paper's Tables 1 and 2.
 PRESETS: dict[str, tuple[tuple[float, float], ...]] = {
@@ -122,31 +130,53 @@ class _Job:
     pose_id: str
     robot: str | None = None
     """None: kinematic camera; "" vinetwin's Panda; else a Panda model path."""
+    context: dict[str, Any] = field(default_factory=dict)
+    """The twin, for the worker (`twin_context`)."""
 
 
-_WORKER: dict[Any, Any] = {}
+def twin_context(twin: Twin) -> dict[str, Any]:
+    """What a worker needs to rebuild a twin's renderer: plain data, sent with each job."""
+    return {
+        "mesh_path": str(twin.mesh_path),
+        "mesh_sha256": file_sha256(twin.mesh_path),
+        "camera": twin.camera.to_dict(),
+        "perception": twin.perception.to_dict(),
+        "T_flange_camera": np.asarray(twin.T_flange_camera).tolist(),
+    }
 
 
-def _init_worker(
-    mesh_path: str, camera: dict[str, Any], perception: dict[str, Any], T_flange_camera: list[Any]
-) -> None:
-    from vinetwin.camera import CameraModel
-    from vinetwin.render.backends import get_backend
+class _TwinWorker:
+    """A twin's mesh, renderer and Panda scenes in one worker process."""
 
-    mesh = load_mesh(mesh_path)
-    _WORKER["mesh"] = mesh
-    _WORKER["T_flange_camera"] = np.asarray(T_flange_camera)
-    cam = CameraModel.from_dict(camera)
-    _WORKER["backend"] = get_backend("open3d", mesh.vertices, mesh.faces, cam)
-    _WORKER["perception"] = PerceptionConfig.from_dict(perception)
+    def __init__(self, ctx: dict[str, Any]) -> None:
+        from vinetwin.camera import CameraModel
+        from vinetwin.render.backends import get_backend
+
+        self.mesh = load_mesh(ctx["mesh_path"])
+        cam = CameraModel.from_dict(ctx["camera"])
+        self.backend = get_backend(
+            "open3d", self.mesh.vertices, self.mesh.faces, cam, threads=worker_threads()
+        )
+        self.perception = PerceptionConfig.from_dict(ctx["perception"])
+        self.arms: dict[tuple[str, bytes], Any] = {}
+
+    def close(self) -> None:
+        self.backend.close()
 
 
-def worker_backend() -> tuple[Any, PerceptionConfig]:
-    """The renderer and perception settings of this worker process."""
-    return _WORKER["backend"], _WORKER["perception"]
+def _worker_twin(ctx: dict[str, Any]) -> _TwinWorker:
+    key = ("sim", ctx["mesh_path"], ctx["mesh_sha256"], json.dumps(ctx["camera"]))
+    return worker_cache(key, lambda: _TwinWorker(ctx))
 
 
-def worker_arm(robot: str | None, goal: Any) -> Any:
+def worker_backend(ctx: dict[str, Any]) -> tuple[Any, PerceptionConfig]:
+    """The renderer and perception settings of a twin (`twin_context`) in this worker process,
+    built on first use."""
+    w = _worker_twin(ctx)
+    return w.backend, w.perception
+
+
+def worker_arm(ctx: dict[str, Any], robot: str | None, goal: Any) -> Any:
     """This worker's Panda (None for the kinematic camera), its scene holding the vine placed so
     the goal is comfortably reachable; compiled once per robot and goal (each run starts by
     reaching its start pose from home)."""
@@ -154,32 +184,32 @@ def worker_arm(robot: str | None, goal: Any) -> Any:
         return None
     from vinetwin.servo.panda import PandaArm, goal_placement
 
-    key = ("arm", robot, np.asarray(goal, float).tobytes())
-    if key in _WORKER:
-        return _WORKER[key]
-    mesh = _WORKER["mesh"]
-    _WORKER[key] = PandaArm(
-        robot or None,
-        T_flange_camera=_WORKER["T_flange_camera"],
-        camera=_WORKER["backend"].camera,
-        vine=(mesh.vertices, mesh.faces),
-        T_base_vine=goal_placement(goal),
-    )
-    return _WORKER[key]
+    w = _worker_twin(ctx)
+    key = (robot, np.asarray(goal, float).tobytes())
+    if key not in w.arms:
+        w.arms[key] = PandaArm(
+            robot or None,
+            T_flange_camera=np.asarray(ctx["T_flange_camera"]),
+            camera=w.backend.camera,
+            vine=(w.mesh.vertices, w.mesh.faces),
+            T_base_vine=goal_placement(goal),
+        )
+    return w.arms[key]
 
 
 def _run_job(job: _Job) -> dict[str, Any]:
     dist = job.disturbance
+    backend, perception = worker_backend(job.context)
     run: SimRun = simulate(
-        _WORKER["backend"],
+        backend,
         np.asarray(job.goal),
         np.asarray(job.start),
         job.reference_seed,
-        _WORKER["perception"],
+        perception,
         SimConfig.from_dict(job.config),
         disturbance=Disturbance.from_dict(dist) if dist else None,
         pose_id=job.pose_id,
-        arm=worker_arm(job.robot, np.asarray(job.goal)),
+        arm=worker_arm(job.context, job.robot, np.asarray(job.goal)),
     )
     return {
         "key": job.key,
@@ -210,9 +240,11 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
         rng = np.random.default_rng([cfg.seed, i])
         starts.append(start_pose(goal, cut, t, r, rng, twin.camera, twin.perception.max_depth))
 
+    ctx = twin_context(twin)
+
     def job(key: str, group: str, i: int, sim: SimConfig, dist: Disturbance | None = None) -> _Job:
         return _Job(key, group, i, goal.tolist(), starts[i].tolist(), sim.to_dict(),
-                    dist.to_dict() if dist else {}, ref_seed, pose.id, robot)  # fmt: skip
+                    dist.to_dict() if dist else {}, ref_seed, pose.id, robot, ctx)  # fmt: skip
 
     jobs = [
         job(f"grid/{i}/{v}", "grid", i, replace(base, variant=v))
@@ -239,41 +271,32 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
 
 
 def run_jobs(
-    twin: Twin,
     jobs: list[Any],
-    workers: int,
+    executor: ExecutorConfig,
     progress: Callable[[dict[str, Any], int, int], None] | None = None,
     fn: Callable[[Any], dict[str, Any]] | None = None,
-) -> tuple[list[dict[str, Any]], int]:
-    """Runs simulation jobs (`fn`, default one closed-loop run per job) in this process
-    (workers 1) or in spawned processes (0: one per core), each with its own renderer. Returns
-    the results in completion order and the number of workers used."""
+) -> tuple[list[tuple[Any, dict[str, Any]]], list[tuple[Any, str]], int]:
+    """Runs simulation jobs (`fn`, default one closed-loop run per job) on the executor (a
+    local process pool, one worker per core when `workers` is 0, or Ray), each worker with its
+    own renderer. Returns (job, result) in completion order, the failed jobs with their error,
+    and the number of workers."""
     fn = fn or _run_job
-    init = (
-        str(twin.mesh_path),
-        twin.camera.to_dict(),
-        twin.perception.to_dict(),
-        np.asarray(twin.T_flange_camera).tolist(),
-    )
-    workers = workers if workers > 0 else (os.cpu_count() or 1)
-    workers = max(1, min(workers, len(jobs)))
-    results: list[dict[str, Any]] = []
-    if workers == 1:
-        _init_worker(*init)
-        for job in jobs:
-            results.append(fn(job))
-            if progress:
-                progress(results[-1], len(results), len(jobs))
-        return results, 1
-    # each process renders with one thread: the processes share the cores
-    os.environ.update({k: "1" for k in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")})
-    with ProcessPoolExecutor(workers, mp.get_context("spawn"), _init_worker, init) as pool:
-        futures = [pool.submit(fn, j) for j in jobs]
-        for fut in as_completed(futures):
-            results.append(fut.result())
-            if progress:
-                progress(results[-1], len(results), len(jobs))
-    return results, workers
+    results: list[tuple[Any, dict[str, Any]]] = []
+    failed: list[tuple[Any, str]] = []
+    workers = workers_used(executor, len(jobs))
+    try:
+        for outcome in run_unordered(fn, jobs, executor):
+            if outcome.ok:
+                results.append((jobs[outcome.index], outcome.value))
+                if progress:
+                    progress(outcome.value, len(results) + len(failed), len(jobs))
+            else:
+                failed.append((jobs[outcome.index], outcome.error))
+                log.error("job %d failed: %s", outcome.index, outcome.error)
+    finally:
+        if executor.kind == "local" and workers <= 1:
+            clear_worker_cache()
+    return results, failed, workers
 
 
 def run_campaign(
@@ -281,12 +304,21 @@ def run_campaign(
     cfg: CampaignConfig,
     out_dir: Path,
     progress: Callable[[dict[str, Any], int, int], None] | None = None,
+    executor: ExecutorConfig | None = None,
 ) -> dict[str, Any]:
-    """Runs the campaign and writes its report into out_dir; returns what campaign.json holds."""
+    """Runs the campaign and writes its report into out_dir; returns what campaign.json holds.
+    `executor` (default: a local pool of `cfg.workers`) picks where the runs go."""
     jobs = plan(twin, cfg)
-    results, workers = run_jobs(twin, jobs, cfg.workers, progress)
+    pairs, failed, workers = run_jobs(
+        jobs, executor or ExecutorConfig(workers=cfg.workers), progress
+    )
+    if failed:
+        raise VinetwinError(
+            f"{len(failed)} of {len(jobs)} runs failed: "
+            + "; ".join(f"{j.key}: {e}" for j, e in failed[:5])
+        )
     order = {j.key: k for k, j in enumerate(jobs)}
-    results.sort(key=lambda r: order[r["key"]])
+    results = sorted((r for _, r in pairs), key=lambda r: order[r["key"]])
     data = {
         "twin": twin.name,
         "config": cfg.to_dict(),

@@ -28,6 +28,7 @@ import numpy as np
 from vinetwin._config import JsonFields, json_default
 from vinetwin.cloud import ICP_VARIANTS
 from vinetwin.errors import InputError
+from vinetwin.executor import ExecutorConfig, fault_point
 from vinetwin.render.reference import file_sha256, pose_seed
 from vinetwin.servo import campaign
 from vinetwin.servo.sim import SimConfig, simulate, start_pose
@@ -75,6 +76,8 @@ class _Group:
     sim: dict[str, Any]
     digest: str
     out: str
+    context: dict[str, Any]
+    """The twin, for the worker (`campaign.twin_context`)."""
 
 
 def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: ValidateConfig) -> str:
@@ -98,13 +101,14 @@ def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: Validate
 
 
 def _run_group(group: _Group) -> dict[str, Any]:
-    backend, perception = campaign.worker_backend()
+    backend, perception = campaign.worker_backend(group.context)
     goal = np.asarray(group.goal)
     runs = []
     for k, start in enumerate(group.starts):
         sim = SimConfig.from_dict({**group.sim, "seed": group.sim["seed"] + k})
         run = simulate(backend, goal, np.asarray(start), group.reference_seed, perception, sim)
         runs.append({"fraction": group.fractions[k], **run.summary()})
+        fault_point(f"{group.pose_id}.{group.variant}", f"run{k}")
     basin = 0.0
     for r in sorted(runs, key=lambda r: r["fraction"]):
         if not r["converged"]:
@@ -119,6 +123,7 @@ def _run_group(group: _Group) -> dict[str, Any]:
         "basin_fraction": basin,
         "runs": runs,
     }
+    # written whole and atomically, last: a group is done only once its file exists
     atomic_write_text(Path(group.out), json.dumps(data, indent=1, default=json_default) + "\n")
     return data
 
@@ -127,14 +132,55 @@ def validate(
     twin: Twin,
     cfg: ValidateConfig,
     progress: Callable[[dict[str, Any], int, int], None] | None = None,
+    executor: ExecutorConfig | None = None,
 ) -> dict[str, Any]:
     """Validates the twin's pruning poses; returns the summary (also written to the twin)."""
-    pose_ids = list(cfg.poses) or [p.id for p in twin.poses]
+    return validate_many([twin], cfg, progress, executor)[0]
+
+
+def validate_many(
+    twins: list[Twin],
+    cfg: ValidateConfig,
+    progress: Callable[[dict[str, Any], int, int], None] | None = None,
+    executor: ExecutorConfig | None = None,
+) -> list[dict[str, Any]]:
+    """Validates the pruning poses of several twins (a vineyard) in one pool of workers;
+    returns each twin's summary. A pose and variant whose runs failed (an error, a worker that
+    died) is reported under `failed` in its twin's summary and left unwritten, so a rerun runs
+    only it."""
+    plans = [_plan(twin, cfg) for twin in twins]
+    groups = [g for _, gs, _ in plans for g in gs]
+    where = {id(g): k for k, (_, gs, _) in enumerate(plans) for g in gs}
+    results: list[dict[tuple[str, str], Any]] = [dict(done) for _, _, done in plans]
+    failed: list[dict[tuple[str, str], str]] = [{} for _ in twins]
+    done, errors, _ = campaign.run_jobs(
+        groups, executor or ExecutorConfig(workers=cfg.workers), progress, fn=_run_group
+    )
+    for g, d in done:
+        results[where[id(g)]][(g.pose_id, g.variant)] = d
+    for g, err in errors:
+        failed[where[id(g)]][(g.pose_id, g.variant)] = err
+    summaries = []
+    for k, (twin, _, _) in enumerate(plans):
+        summary = _summarise(twin, cfg, _pose_ids(twin, cfg), results[k], failed[k])
+        _write_map(summary, twin.root / "validation")
+        summaries.append(summary)
+    return summaries
+
+
+def _pose_ids(twin: Twin, cfg: ValidateConfig) -> list[str]:
+    return list(cfg.poses) or [p.id for p in twin.poses]
+
+
+def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tuple[str, str], Any]]:
+    """The groups to run and the results already current on disk."""
+    pose_ids = _pose_ids(twin, cfg)
     for pid in pose_ids:
         twin.pose(pid)  # unknown ids fail here, before any work
     out_dir = twin.root / "validation"
     out_dir.mkdir(exist_ok=True)
     mesh_sha = file_sha256(twin.mesh_path)
+    ctx = campaign.twin_context(twin)
     fractions = [(k + 1) / cfg.starts for k in range(cfg.starts)]
     groups, results = [], {}
     for pid in pose_ids:
@@ -170,23 +216,27 @@ def validate(
                     sim.to_dict(),
                     digest,
                     str(out),
+                    ctx,
                 )
             )
-    done, _ = campaign.run_jobs(twin, groups, cfg.workers, progress, fn=_run_group)
-    for d in done:
-        results[(d["pose"], d["variant"])] = d
-    summary = _summarise(twin, cfg, pose_ids, results)
-    _write_map(summary, out_dir)
-    return summary
+    return twin, groups, results
 
 
 def _summarise(
-    twin: Twin, cfg: ValidateConfig, pose_ids: list[str], results: dict[tuple[str, str], Any]
+    twin: Twin,
+    cfg: ValidateConfig,
+    pose_ids: list[str],
+    results: dict[tuple[str, str], Any],
+    failed: dict[tuple[str, str], str] | None = None,
 ) -> dict[str, Any]:
+    failed = failed or {}
     rows = []
     for pid in pose_ids:
-        per_variant = {}
+        per_variant: dict[str, Any] = {}
         for v in cfg.variants:
+            if (pid, v) in failed:
+                per_variant[v] = {"failed": failed[(pid, v)]}
+                continue
             r = results[(pid, v)]
             per_variant[v] = {
                 "success_rate": r["success_rate"],
@@ -197,11 +247,14 @@ def _summarise(
         twin.pose(pid).extra["validation"] = {
             "radius_translation": cfg.radius_translation,
             "radius_rotation": cfg.radius_rotation,
-            "variants": per_variant,
+            "variants": {v: c for v, c in per_variant.items() if "failed" not in c},
         }
         rows.append({"pose": pid, "variants": per_variant})
     twin.save()
-    return {"twin": twin.name, "config": cfg.to_dict(), "poses": rows}
+    out = {"twin": twin.name, "config": cfg.to_dict(), "poses": rows}
+    if failed:
+        out["failed"] = [{"pose": p, "variant": v, "error": e} for (p, v), e in failed.items()]
+    return out
 
 
 def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
@@ -219,6 +272,9 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
         cells = []
         for v in variants:
             c = row["variants"][v]
+            if "failed" in c:
+                cells.append("failed (run again)")
+                continue
             cells.append(
                 f"{100 * c['success_rate']:.0f}%; {1000 * c['basin_translation']:.0f} mm / "
                 f"{c['basin_rotation']:.2f} rad"
@@ -235,10 +291,13 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
 
     poses = [r["pose"] for r in summary["poses"]]
     rate = np.array(
-        [[r["variants"][v]["success_rate"] for v in variants] for r in summary["poses"]]
+        [[r["variants"][v].get("success_rate", np.nan) for v in variants] for r in summary["poses"]]
     )
     basin = np.array(
-        [[r["variants"][v]["basin_translation"] for v in variants] for r in summary["poses"]]
+        [
+            [r["variants"][v].get("basin_translation", np.nan) for v in variants]
+            for r in summary["poses"]
+        ]
     )
     fig, ax = plt.subplots(figsize=(max(1.9 * len(variants) + 2, 7.0), 0.5 * len(poses) + 1.8))
     im = ax.imshow(rate, vmin=0, vmax=1, cmap="RdYlGn", aspect="auto")
@@ -247,7 +306,9 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
             ax.text(
                 j,
                 i,
-                f"{100 * rate[i, j]:.0f}%\n{1000 * basin[i, j]:.0f} mm",
+                f"{100 * rate[i, j]:.0f}%\n{1000 * basin[i, j]:.0f} mm"
+                if np.isfinite(rate[i, j])
+                else "failed",
                 ha="center",
                 va="center",
                 fontsize=8,

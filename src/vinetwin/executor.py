@@ -1,0 +1,306 @@
+"""Where batch jobs run: this process, a local process pool (the default), or Ray (a local Ray on
+this machine, or a cluster). `vinetwin export`, `validate` and `campaign` hand their jobs here and
+get one `Outcome` per job as each finishes, whatever the executor, so outputs, progress,
+resumability and per-job failure isolation are the same with all of them.
+
+- A job whose function raises is reported failed (`Outcome.error`), the others go on.
+- A job whose worker process dies (killed, out of memory, a crash in native code) is run again
+  up to `ExecutorConfig.retries` times, on a fresh worker; then reported failed. The local pool
+  is rebuilt after a death (Python's pool breaks as a whole); Ray retries the task itself.
+- Jobs are plain picklable objects and the function a module-level one; each worker process
+  keeps what is expensive to build (a mesh and its renderer) in `worker_cache`, so a worker
+  serving many jobs of one twin loads it once.
+
+Ray is an optional extra (`pip install 'vinetwin[ray]'`). `ExecutorConfig(kind="ray")` starts a
+local Ray with `workers` CPUs (all when 0) and shuts it down after; with `address` it joins a
+running cluster (`ray start --head` on one machine, `ray start --address HEAD:6379` on the
+others), whose nodes must have vinetwin installed and see the twin folders at the same path.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from typing import Any
+
+from vinetwin._config import JsonFields
+from vinetwin.errors import InputError, VinetwinError
+
+log = logging.getLogger(__name__)
+
+EXECUTORS = ("local", "ray")
+#: Environment variables capping a worker's threads (the workers share the cores).
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+#: Fault injection for tests: "kill:JOBKEY[@STAGE]" makes the worker running that job kill its
+#: own process at that stage (see `fault_point`).
+FAULT_VAR = "VINETWIN_FAULT"
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExecutorConfig(JsonFields):
+    kind: str = "local"
+    """local (a process pool on this machine) or ray."""
+    workers: int = 0
+    """local: worker processes (0: one per core; 1: run in this process). ray: CPUs of the
+    local Ray it starts (0: all); ignored when joining a cluster."""
+    address: str = ""
+    """ray: the cluster to join ("auto", "HOST:6379" or "ray://HOST:10001"); empty: start a
+    local Ray."""
+    retries: int = 1
+    """Runs again a job whose worker died, this many times."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in EXECUTORS:
+            raise InputError(
+                f"unknown executor '{self.kind}'; choose one of: {', '.join(EXECUTORS)}"
+            )
+        if self.workers < 0 or self.retries < 0:
+            raise InputError("workers and retries must be >= 0")
+
+
+@dataclass
+class Outcome:
+    """One job's end: `value` (what the function returned) or `error`."""
+
+    index: int
+    value: Any = None
+    error: str = ""
+    worker_died: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return not self.error
+
+
+class ExecutorError(VinetwinError):
+    """The executor could not start (Ray missing or its cluster unreachable)."""
+
+
+# ----------------------------------------------------------------------------- worker side
+_CACHE: OrderedDict[Any, Any] = OrderedDict()
+
+
+def worker_cache(key: Any, build: Callable[[], Any], size: int = 2) -> Any:
+    """This worker process's copy of an expensive object (e.g. a twin's renderer), built on
+    first use; the least recently used beyond `size` are dropped (closed when they can be)."""
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    value = build()
+    _CACHE[key] = value
+    while len(_CACHE) > size:
+        _, old = _CACHE.popitem(last=False)
+        close = getattr(old, "close", None)
+        if callable(close):
+            try:
+                close()
+            except Exception:  # closing a renderer must not fail a job
+                pass
+    return value
+
+
+def clear_worker_cache() -> None:
+    while _CACHE:
+        _, old = _CACHE.popitem()
+        close = getattr(old, "close", None)
+        if callable(close):
+            try:
+                close()
+            except Exception:
+                pass
+
+
+def fault_point(job_key: str, stage: str = "") -> None:
+    """Kills this process when `VINETWIN_FAULT` names this job (and stage): how tests kill a
+    worker in the middle of a job. Does nothing otherwise."""
+    spec = os.environ.get(FAULT_VAR, "")
+    if not spec.startswith("kill:"):
+        return
+    want_key, _, want_stage = spec[5:].partition("@")
+    if want_key == job_key and want_stage == stage:
+        marker = os.environ.get(FAULT_VAR + "_ONCE", "")
+        if marker:  # kill only the first attempt
+            try:
+                fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+                os.close(fd)
+            except FileExistsError:
+                return
+        os.kill(os.getpid(), 9)
+
+
+def worker_threads() -> int:
+    """Threads this worker may use (0: all; set by the executor for its workers)."""
+    return int(os.environ.get("VINETWIN_WORKER_THREADS", "0") or 0)
+
+
+def _init_threads(threads: int) -> None:
+    os.environ.update({k: str(threads) for k in (*THREAD_VARS, "VINETWIN_WORKER_THREADS")})
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+def _call(fn: Callable[[Any], Any], job: Any) -> Any:
+    return fn(job)
+
+
+# ----------------------------------------------------------------------------- driver side
+def run_unordered(
+    fn: Callable[[Any], Any], jobs: Sequence[Any], config: ExecutorConfig | None = None
+) -> Iterator[Outcome]:
+    """Runs `fn(job)` for every job; yields each job's `Outcome` as it finishes."""
+    cfg = config or ExecutorConfig()
+    if not jobs:
+        return
+    if cfg.kind == "ray":
+        yield from _run_ray(fn, jobs, cfg)
+        return
+    workers = cfg.workers if cfg.workers > 0 else (os.cpu_count() or 1)
+    workers = max(1, min(workers, len(jobs)))
+    if workers == 1:
+        for i, job in enumerate(jobs):
+            try:
+                yield Outcome(i, fn(job))
+            except Exception as exc:  # one job's failure is reported, the others go on
+                yield Outcome(i, error=f"{type(exc).__name__}: {exc}")
+        return
+    yield from _run_pool(fn, jobs, cfg, workers)
+
+
+def workers_used(config: ExecutorConfig, n_jobs: int) -> int:
+    """How many workers `run_unordered` uses for n jobs (for reports)."""
+    if config.kind == "ray":
+        try:
+            import ray
+
+            if ray.is_initialized():
+                return int(ray.cluster_resources().get("CPU", 1))
+        except ImportError:
+            pass
+        return config.workers or (os.cpu_count() or 1)
+    workers = config.workers if config.workers > 0 else (os.cpu_count() or 1)
+    return max(1, min(workers, n_jobs))
+
+
+def _new_pool(workers: int) -> ProcessPoolExecutor:
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    return ProcessPoolExecutor(
+        workers, mp_context=mp.get_context("spawn"), initializer=_init_threads,
+        initargs=(threads,),
+    )  # fmt: skip
+
+
+def _run_pool(
+    fn: Callable[[Any], Any], jobs: Sequence[Any], cfg: ExecutorConfig, workers: int
+) -> Iterator[Outcome]:
+    queue = list(range(len(jobs)))
+    attempts = [0] * len(jobs)
+    pool = _new_pool(workers)
+    pending: dict[Future[Any], int] = {}
+    try:
+        while queue or pending:
+            while queue and len(pending) < 2 * workers:  # bounded: honest progress, flat memory
+                i = queue.pop(0)
+                attempts[i] += 1
+                pending[pool.submit(_call, fn, jobs[i])] = i
+            done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+            broken = False
+            for fut in done:
+                i = pending.pop(fut)
+                try:
+                    yield Outcome(i, fut.result())
+                except BrokenProcessPool:
+                    broken = True
+                    yield from _died(i, attempts, cfg, queue)
+                except Exception as exc:
+                    yield Outcome(i, error=f"{type(exc).__name__}: {exc}")
+            if broken:
+                # the pool is unusable: every job still in it is lost with it; run them again
+                for fut, i in list(pending.items()):
+                    fut.cancel()
+                    yield from _died(i, attempts, cfg, queue)
+                pending.clear()
+                pool.shutdown(wait=False, cancel_futures=True)
+                pool = _new_pool(workers)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _died(i: int, attempts: list[int], cfg: ExecutorConfig, queue: list[int]) -> Iterator[Outcome]:
+    if attempts[i] <= cfg.retries:
+        log.warning("job %d: its worker died; running it again", i)
+        queue.insert(0, i)
+        return
+    yield Outcome(i, error="worker died (killed or crashed) while running it", worker_died=True)
+
+
+def _ray() -> Any:
+    try:
+        import ray
+    except ImportError as exc:
+        raise ExecutorError(
+            f"the Ray executor needs ray: pip install 'vinetwin[ray]' ({exc})"
+        ) from exc
+    return ray
+
+
+def _run_ray(
+    fn: Callable[[Any], Any], jobs: Sequence[Any], cfg: ExecutorConfig
+) -> Iterator[Outcome]:
+    ray = _ray()
+    started = False
+    if not ray.is_initialized():
+        env = {k: "1" for k in (*THREAD_VARS, "VINETWIN_WORKER_THREADS")}
+        for k in (FAULT_VAR, FAULT_VAR + "_ONCE"):
+            if k in os.environ:
+                env[k] = os.environ[k]
+        env.setdefault("PYOPENGL_PLATFORM", "egl")
+        env.setdefault("MUJOCO_GL", "egl")
+        kwargs: dict[str, Any] = {
+            "include_dashboard": False,
+            "log_to_driver": False,
+            "configure_logging": False,
+            "runtime_env": {"env_vars": env},
+        }
+        if cfg.address:
+            kwargs["address"] = cfg.address
+        else:
+            kwargs["num_cpus"] = cfg.workers or (os.cpu_count() or 1)
+        try:
+            ray.init(**kwargs)
+        except Exception as exc:
+            where = cfg.address or "a local Ray"
+            raise ExecutorError(f"cannot start or join {where}: {exc}") from exc
+        started = True
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=cfg.retries, retry_exceptions=False)(_call)
+        cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        fn_ref = ray.put(fn)
+        queue = list(range(len(jobs)))
+        pending: dict[Any, int] = {}
+        while queue or pending:
+            while queue and len(pending) < 2 * cpus:
+                i = queue.pop(0)
+                pending[remote.remote(fn_ref, jobs[i])] = i
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                i = pending.pop(ref)
+                try:
+                    yield Outcome(i, ray.get(ref))
+                except ray.exceptions.RayTaskError as exc:  # the function raised
+                    cause = exc.cause if getattr(exc, "cause", None) is not None else exc
+                    yield Outcome(i, error=f"{type(cause).__name__}: {cause}")
+                except (ray.exceptions.WorkerCrashedError, ray.exceptions.RayError) as exc:
+                    yield Outcome(
+                        i,
+                        error=f"worker died (killed or crashed) while running it: {type(exc).__name__}",
+                        worker_died=True,
+                    )
+    finally:
+        if started:
+            ray.shutdown()
