@@ -109,17 +109,23 @@ BackendChoice = Literal["open3d", "pyrender", "mujoco"]
 
 @dataclass(frozen=True, kw_only=True)
 class Export:
-    """Render each pruning pose's reference cloud into TWIN/references (PLY, PCD, JSON)."""
+    """Render each pruning pose's reference cloud into TWIN/references (PLY, PCD, JSON), for one
+    twin or every twin of a vineyard folder; resumable."""
 
     twin: Annotated[Path, tyro.conf.Positional]
-    """Twin folder."""
+    """Twin folder, or a folder of twin folders (a vineyard)."""
     poses: tuple[str, ...] = ()
-    """Pose ids to export (default: all)."""
+    """Pose ids to export (default: all; one twin only)."""
     backend: BackendChoice = "open3d"
     """Depth renderer: open3d (ray casting, no OpenGL), pyrender or mujoco (EGL)."""
     workers: int = 0
     """Worker processes; 0 chooses (1 for open3d, whose ray caster already uses every core; one
-    per core for pyrender and mujoco)."""
+    per core for pyrender and mujoco). With --ray: the local Ray's CPUs (0: all)."""
+    ray: bool = False
+    """Run the jobs on a local Ray started on this machine (pip install 'vinetwin[ray]')."""
+    ray_address: str = ""
+    """Run the jobs on this Ray cluster (e.g. HOST:6379 or auto); the twin folders must be at the
+    same path on every node."""
     seed: int = 0
     """Base seed of the D405 noise; each pose derives its own."""
     force: bool = False
@@ -128,26 +134,49 @@ class Export:
     """Render without the D405 sensor model (exact depth)."""
 
     def run(self) -> None:
-        from vinetwin.render.export import check_export_ok, export_references
+        from vinetwin.render.export import check_export_ok, export_many, export_references
         from vinetwin.render.sensor import SensorConfig
-        from vinetwin.twin.model import Twin
+        from vinetwin.twin.model import Twin, find_twins
 
-        twin = Twin.load(self.twin)
-        report = _with_progress(
-            "exporting references",
-            lambda progress: export_references(
-                twin,
-                self.poses or None,
-                backend=self.backend,
-                workers=self.workers,
-                seed=self.seed,
-                sensor=SensorConfig(enabled=not self.clean),
-                force=self.force,
-                progress=progress,
-            ),
-        )
-        _print_export(report, twin.references_dir)
+        roots = find_twins(self.twin)
+        executor = _executor(self.ray, self.ray_address, self.workers)
+        sensor = SensorConfig(enabled=not self.clean)
+        if len(roots) == 1:
+            twin = Twin.load(roots[0])
+            report = _with_progress(
+                "exporting references",
+                lambda progress: export_references(
+                    twin, self.poses or None, backend=self.backend, workers=self.workers,
+                    seed=self.seed, sensor=sensor, force=self.force, executor=executor,
+                    progress=progress,
+                ),
+            )  # fmt: skip
+            where = twin.references_dir
+        else:
+            if self.poses:
+                raise VinetwinError("--poses selects poses of one twin, not of a vineyard")
+            twins = [Twin.load(r) for r in roots]
+            report = _with_progress(
+                f"exporting references of {len(twins)} twins",
+                lambda progress: export_many(
+                    twins, backend=self.backend, workers=self.workers, seed=self.seed,
+                    sensor=sensor, force=self.force, executor=executor, progress=progress,
+                ),
+            )  # fmt: skip
+            where = self.twin
+        _print_export(report, where)
         check_export_ok(report)
+
+
+def _executor(ray: bool, address: str, workers: int):  # type: ignore[no-untyped-def]
+    """The executor the flags ask for (None: the command's default local pool)."""
+    from vinetwin.executor import ExecutorConfig
+
+    if address:
+        return ExecutorConfig(kind="ray", address=address)
+    if ray:
+        return ExecutorConfig(kind="ray", workers=workers)
+    return None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -215,10 +244,11 @@ def _print_export(report: object, where: Path) -> None:
     from vinetwin.render.export import ExportReport
 
     assert isinstance(report, ExportReport)
+    several = len({r.twin for r in report.results}) > 1
     table = Table("pose", "status", "points", "seconds", "note")
     for r in report.results:
         table.add_row(
-            r.pose_id,
+            f"{Path(r.twin).name}/{r.pose_id}" if several else r.pose_id,
             r.status,
             str(r.points) if r.status == "rendered" else "",
             f"{r.seconds:.2f}",
@@ -228,7 +258,8 @@ def _print_export(report: object, where: Path) -> None:
     con.print(table)
     con.print(
         f"{report.count('rendered')} rendered, {report.count('skipped')} unchanged, "
-        f"{report.count('failed')} failed in {report.seconds:.1f} s -> {where}"
+        f"{report.count('failed')} failed in {report.seconds:.1f} s "
+        f"({report.executor}, {report.workers} worker{'s' * (report.workers != 1)}) -> {where}"
     )
 
 
@@ -269,7 +300,11 @@ class Campaign:
     guess_comparison: bool = True
     """Add point-to-plane runs with and without the kinematic initial guess."""
     workers: int = 0
-    """Processes; 0: one per core."""
+    """Processes; 0: one per core. With --ray: the local Ray's CPUs (0: all)."""
+    ray: bool = False
+    """Run the runs on a local Ray started on this machine (pip install 'vinetwin[ray]')."""
+    ray_address: str = ""
+    """Run the runs on this Ray cluster (HOST:6379, auto)."""
     seed: int = 0
     """Seed of the starts, the noise and the registration error."""
 
@@ -295,7 +330,10 @@ class Campaign:
             seed=self.seed,
         )
         out = self.out or (self.twin / "campaign" / self.preset)
-        data = _with_progress("simulating", lambda progress: run_campaign(twin, cfg, out, progress))
+        executor = _executor(self.ray, self.ray_address, self.workers)
+        data = _with_progress(
+            "simulating", lambda progress: run_campaign(twin, cfg, out, progress, executor)
+        )
         _print_campaign(data)
         log.info("report: %s", out / "report.html")
         if self.json:
@@ -309,7 +347,7 @@ class Validate:
     and ICP variant; success rate and convergence basin into TWIN/validation and twin.json."""
 
     twin: Annotated[Path, tyro.conf.Positional]
-    """Twin folder."""
+    """Twin folder, or a folder of twin folders (a vineyard)."""
     poses: tuple[str, ...] = ()
     """Pose ids (default: all)."""
     variants: tuple[VariantChoice, ...] = ("point_to_point", "lm", "point_to_plane", "symmetric")
@@ -323,7 +361,11 @@ class Validate:
     duration: float = 20.0
     """Longest simulated time per run (s)."""
     workers: int = 0
-    """Processes; 0: one per core."""
+    """Processes; 0: one per core. With --ray: the local Ray's CPUs (0: all)."""
+    ray: bool = False
+    """Run on a local Ray started on this machine (pip install 'vinetwin[ray]')."""
+    ray_address: str = ""
+    """Run on this Ray cluster (HOST:6379, auto); twin folders at the same path on every node."""
     seed: int = 0
     """Seed of the starts and the noise."""
     force: bool = False
@@ -334,10 +376,10 @@ class Validate:
     def run(self) -> None:
         import json
 
-        from vinetwin.servo.validate import ValidateConfig, validate
-        from vinetwin.twin.model import Twin
+        from vinetwin.servo.validate import ValidateConfig, validate_many
+        from vinetwin.twin.model import Twin, find_twins
 
-        twin = Twin.load(self.twin)
+        twins = [Twin.load(r) for r in find_twins(self.twin)]
         cfg = ValidateConfig(
             variants=tuple(self.variants),
             poses=self.poses,
@@ -349,11 +391,22 @@ class Validate:
             workers=self.workers,
             force=self.force,
         )
-        summary = _with_progress("validating", lambda progress: validate(twin, cfg, progress))
-        print((twin.root / "validation" / "summary.md").read_text())
+        executor = _executor(self.ray, self.ray_address, self.workers)
+        summaries = _with_progress(
+            "validating", lambda progress: validate_many(twins, cfg, progress, executor)
+        )
+        for twin in twins:
+            print((twin.root / "validation" / "summary.md").read_text())
         if self.json:
             self.json.parent.mkdir(parents=True, exist_ok=True)
-            self.json.write_text(json.dumps(summary, indent=1))
+            data = summaries[0] if len(summaries) == 1 else summaries
+            self.json.write_text(json.dumps(data, indent=1))
+        failed = [f for s in summaries for f in s.get("failed", [])]
+        if failed:
+            raise VinetwinError(
+                f"{len(failed)} pose/variant validations failed (run again to complete them): "
+                + "; ".join(f"{f['pose']}.{f['variant']}: {f['error']}" for f in failed[:5])
+            )
 
 
 @dataclass(frozen=True, kw_only=True)

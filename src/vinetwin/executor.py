@@ -5,8 +5,10 @@ resumability and per-job failure isolation are the same with all of them.
 
 - A job whose function raises is reported failed (`Outcome.error`), the others go on.
 - A job whose worker process dies (killed, out of memory, a crash in native code) is run again
-  up to `ExecutorConfig.retries` times, on a fresh worker; then reported failed. The local pool
-  is rebuilt after a death (Python's pool breaks as a whole); Ray retries the task itself.
+  up to `ExecutorConfig.retries` times, on a fresh worker; then reported failed. Python's pool
+  breaks as a whole when a worker dies, taking every job in flight with it, and does not say
+  whose worker died: those jobs are run again each in a worker of its own (so only the culprit
+  can fail), then a fresh pool goes on. Ray knows the task and retries it itself.
 - Jobs are plain picklable objects and the function a module-level one; each worker process
   keeps what is expensive to build (a mesh and its renderer) in `worker_cache`, so a worker
   serving many jobs of one twin loads it once.
@@ -199,44 +201,64 @@ def _run_pool(
     fn: Callable[[Any], Any], jobs: Sequence[Any], cfg: ExecutorConfig, workers: int
 ) -> Iterator[Outcome]:
     queue = list(range(len(jobs)))
-    attempts = [0] * len(jobs)
     pool = _new_pool(workers)
     pending: dict[Future[Any], int] = {}
     try:
         while queue or pending:
             while queue and len(pending) < 2 * workers:  # bounded: honest progress, flat memory
                 i = queue.pop(0)
-                attempts[i] += 1
                 pending[pool.submit(_call, fn, jobs[i])] = i
             done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
-            broken = False
+            suspects: list[int] = []
             for fut in done:
                 i = pending.pop(fut)
                 try:
                     yield Outcome(i, fut.result())
                 except BrokenProcessPool:
-                    broken = True
-                    yield from _died(i, attempts, cfg, queue)
+                    suspects.append(i)
                 except Exception as exc:
                     yield Outcome(i, error=f"{type(exc).__name__}: {exc}")
-            if broken:
-                # the pool is unusable: every job still in it is lost with it; run them again
-                for fut, i in list(pending.items()):
-                    fut.cancel()
-                    yield from _died(i, attempts, cfg, queue)
+            if suspects:
+                # a worker died and took the pool with it; which of the jobs in flight killed
+                # it is unknown: run each of them alone, then go on with a fresh pool
+                suspects += list(pending.values())
                 pending.clear()
                 pool.shutdown(wait=False, cancel_futures=True)
+                log.warning(
+                    "a worker died; running the %d jobs in flight one by one", len(suspects)
+                )
+                yield from _run_alone(fn, jobs, sorted(suspects), cfg)
                 pool = _new_pool(workers)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _died(i: int, attempts: list[int], cfg: ExecutorConfig, queue: list[int]) -> Iterator[Outcome]:
-    if attempts[i] <= cfg.retries:
-        log.warning("job %d: its worker died; running it again", i)
-        queue.insert(0, i)
-        return
-    yield Outcome(i, error="worker died (killed or crashed) while running it", worker_died=True)
+def _run_alone(
+    fn: Callable[[Any], Any], jobs: Sequence[Any], indices: list[int], cfg: ExecutorConfig
+) -> Iterator[Outcome]:
+    """Each job in a worker of its own: a death is then its own; it runs again up to
+    `cfg.retries` times."""
+    for i in indices:
+        deaths = 0
+        while True:
+            pool = _new_pool(1)
+            try:
+                yield Outcome(i, pool.submit(_call, fn, jobs[i]).result())
+                break
+            except BrokenProcessPool:
+                deaths += 1
+                if deaths > cfg.retries:
+                    yield Outcome(
+                        i, error="worker died (killed or crashed) while running it",
+                        worker_died=True,
+                    )  # fmt: skip
+                    break
+                log.warning("job %d: its worker died; running it again", i)
+            except Exception as exc:
+                yield Outcome(i, error=f"{type(exc).__name__}: {exc}")
+                break
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _ray() -> Any:

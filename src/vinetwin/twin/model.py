@@ -612,6 +612,22 @@ class Twin:
 
 
 # ----------------------------------------------------------------------------- meshes
+def find_twins(path: str | Path) -> list[Path]:
+    """The twin folders at `path`: itself when it holds a twin.json, else every folder below it
+    that does (a vineyard: a folder of twin folders, at any depth), in sorted order."""
+    root = Path(path)
+    if (root / "twin.json").exists():
+        return [root]
+    if not root.is_dir():
+        raise TwinError(f"{root}: no such folder")
+    found = sorted({p.parent for p in root.rglob("twin.json")})
+    if not found:
+        raise TwinError(
+            f"{root}: neither a twin folder nor a folder of twin folders (no twin.json)"
+        )
+    return found
+
+
 def check_mesh_arrays(V: Any, F: Any, where: str) -> None:
     """Raises MeshError naming the problem: bad shapes, no faces, non-finite vertices, faces
     indexing missing vertices."""

@@ -1,0 +1,170 @@
+"""Vineyard-size batches: export and validation over a folder of twins through the local process
+pool and through Ray (a local Ray with 2 CPUs), with identical outputs, per-job failure
+isolation, and workers killed in the middle of a job (fault injection: the worker kills its own
+process with SIGKILL at a named point) losing and corrupting nothing."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import SAMPLES
+from vinetwin.cli import main
+from vinetwin.executor import FAULT_VAR, ExecutorConfig, Outcome, run_unordered
+from vinetwin.render.export import export_many
+from vinetwin.servo.validate import ValidateConfig, validate_many
+from vinetwin.twin.model import Twin, find_twins
+
+
+def _vineyard(tmp_path: Path, name: str = "vineyard") -> Path:
+    """Two bundled sample twins (9 pruning poses between them) in rows of a vineyard folder."""
+    root = tmp_path / name
+    for row, sample in (("row1", "vine_bilateral"), ("row2", "vine_unilateral")):
+        shutil.copytree(
+            SAMPLES / f"{sample}.twin", root / row / f"{sample}.twin",
+            ignore=shutil.ignore_patterns("references", "validation", "campaign", "servo"),
+        )  # fmt: skip
+    return root
+
+
+def _files(root: Path) -> dict[str, object]:
+    """Every reference file under a vineyard: cloud bytes, and sidecars less their timestamp."""
+    out: dict[str, object] = {}
+    for p in sorted(root.rglob("references/*")):
+        key = str(p.relative_to(root))
+        if p.suffix == ".json":
+            meta = json.loads(p.read_text())
+            meta.pop("created")
+            out[key] = meta
+        else:
+            out[key] = p.read_bytes()
+    return out
+
+
+def _twins(root: Path) -> list[Twin]:
+    return [Twin.load(p) for p in find_twins(root)]
+
+
+def _square(x: int) -> int:
+    if x == 3:
+        raise ValueError("three is refused")
+    return x * x
+
+
+@pytest.mark.parametrize("kind", ["local", "ray"])
+def test_executor_isolates_a_failing_job(kind: str) -> None:
+    if kind == "ray":
+        pytest.importorskip("ray")
+    outs = list(run_unordered(_square, list(range(6)), ExecutorConfig(kind=kind, workers=2)))
+    by = {o.index: o for o in outs}
+    assert sorted(by) == list(range(6))
+    assert by[3].error == "ValueError: three is refused" and not by[3].worker_died
+    assert all(by[i].value == i * i for i in range(6) if i != 3)
+    assert isinstance(outs[0], Outcome)
+
+
+def test_vineyard_export_is_identical_through_every_executor(tmp_path: Path) -> None:
+    pytest.importorskip("ray")
+    roots = {k: _vineyard(tmp_path, k) for k in ("inprocess", "pool", "ray")}
+    assert len(find_twins(roots["pool"])) == 2
+    reports = {
+        "inprocess": export_many(_twins(roots["inprocess"]), executor=ExecutorConfig(workers=1)),
+        "pool": export_many(_twins(roots["pool"]), executor=ExecutorConfig(workers=2)),
+        "ray": export_many(_twins(roots["ray"]), executor=ExecutorConfig(kind="ray", workers=2)),
+    }
+    for name, r in reports.items():
+        assert r.ok and r.count("rendered") == 9, (name, r.results)
+    assert reports["pool"].workers == 2 and reports["ray"].executor == "ray"
+    files = {k: _files(v) for k, v in roots.items()}
+    assert len(files["pool"]) == 9 * 3  # PLY, PCD, JSON per pose
+    assert files["pool"] == files["inprocess"]
+    assert files["ray"] == files["inprocess"]
+
+
+@pytest.mark.parametrize("kind", ["local", "ray"])
+def test_a_worker_killed_mid_export_loses_nothing(
+    kind: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker rendering one pose dies between writing its PLY and its sidecar: that pose is
+    reported failed, every other pose completes, and a rerun renders only the killed one, to
+    the same files an uninterrupted export writes."""
+    if kind == "ray":
+        pytest.importorskip("ray")
+    clean = _vineyard(tmp_path, "clean")
+    export_many(_twins(clean), executor=ExecutorConfig(workers=1))
+    root = _vineyard(tmp_path, "killed")
+    victim = find_twins(root)[0]
+    monkeypatch.setenv(FAULT_VAR, f"kill:{victim}/p2@ply")
+    executor = ExecutorConfig(kind=kind, workers=2, retries=0)
+    report = export_many(_twins(root), executor=executor)
+    failed = [r for r in report.results if r.status == "failed"]
+    assert [(Path(r.twin), r.pose_id) for r in failed] == [(victim, "p2")]
+    assert "worker died" in failed[0].error
+    assert report.count("rendered") == 8
+    assert (victim / "references" / "p2.ply").exists()  # written before the kill ...
+    assert not (victim / "references" / "p2.json").exists()  # ... but never made current
+
+    monkeypatch.delenv(FAULT_VAR)
+    again = export_many(_twins(root), executor=executor)
+    assert again.ok and again.count("rendered") == 1 and again.count("skipped") == 8
+    assert [r.pose_id for r in again.results if r.status == "rendered"] == ["p2"]
+    assert _files(root) == _files(clean)
+
+
+def test_a_killed_worker_is_replaced_and_its_job_retried(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    root = _vineyard(tmp_path)
+    victim = find_twins(root)[1]
+    monkeypatch.setenv(FAULT_VAR, f"kill:{victim}/p1@render")
+    monkeypatch.setenv(FAULT_VAR + "_ONCE", str(tmp_path / "killed-once"))
+    report = export_many(_twins(root), executor=ExecutorConfig(workers=2, retries=1))
+    assert report.ok and report.count("rendered") == 9
+    assert (tmp_path / "killed-once").exists()  # the first attempt was killed
+
+
+def test_vineyard_validation_on_ray_resumes_after_a_kill(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    pytest.importorskip("ray")
+    root = _vineyard(tmp_path)
+    twins = _twins(root)
+    cfg = ValidateConfig(
+        variants=("point_to_plane",), poses=("p1",), starts=2, duration=3.0,
+        radius_translation=0.02, radius_rotation=0.05,
+    )  # fmt: skip
+    monkeypatch.setenv(FAULT_VAR, "kill:p1.point_to_plane@run0")
+    ray = ExecutorConfig(kind="ray", workers=2, retries=0)
+    summaries = validate_many(twins, cfg, executor=ray)
+    # both twins' p1 groups were killed after their first run: nothing written, both reported
+    assert all(len(s["failed"]) == 1 for s in summaries)
+    assert not list(root.rglob("validation/p1.point_to_plane.json"))
+    assert "failed" in (twins[0].root / "validation" / "summary.md").read_text()
+
+    monkeypatch.delenv(FAULT_VAR)
+    summaries = validate_many(_twins(root), cfg, executor=ray)
+    assert all("failed" not in s for s in summaries)
+    files = sorted(root.rglob("validation/p1.point_to_plane.json"))
+    assert len(files) == 2
+    for s in summaries:
+        cell = s["poses"][0]["variants"]["point_to_plane"]
+        assert cell["starts"] == 2 and 0.0 <= cell["success_rate"] <= 1.0
+    stamps = [f.stat().st_mtime_ns for f in files]
+    validate_many(_twins(root), cfg, executor=ExecutorConfig(workers=1))  # all current: no runs
+    assert [f.stat().st_mtime_ns for f in files] == stamps
+    assert "validation" in json.loads((twins[1].root / "twin.json").read_text())["pruning_poses"][0]
+
+
+def test_cli_exports_a_vineyard_with_ray(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pytest.importorskip("ray")
+    root = _vineyard(tmp_path)
+    assert main(["export", str(root), "--ray", "--workers", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "9 rendered" in out and "ray" in out
+    assert main(["export", str(root)]) == 0
+    assert "0 rendered, 9 unchanged" in capsys.readouterr().out
