@@ -35,3 +35,19 @@ def test_icp_benchmark_quick(tmp_path: Path) -> None:
         "symmetric",
     }
     assert "servo cycle" in proc.stdout
+
+
+def test_scale_benchmark_quick(tmp_path: Path) -> None:
+    """Every executor row is measured (local pool, in process, Ray) for export and validation."""
+    out = tmp_path / "scale.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "scale.py"), "--quick", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads(out.read_text())
+    jobs = [(r["job"], r["executor"]) for r in data["rows"]]
+    assert len(jobs) == 5 and ("export", "Ray, 2 CPUs") in jobs
+    assert all(r["per_second"] > 0 for r in data["rows"])
