@@ -179,6 +179,13 @@ def test_recording_from_the_device_plays_back(vine_views: VineViews, tmp_path: P
     wall = arrivals[-1] - arrivals[0]
     assert wall == pytest.approx((len(views) - 1) / 30, abs=0.2)  # the recorded rate
 
+    fixed = open_source(f"bag:{path}", rate=10.0)  # a fixed rate
+    arrivals = []
+    while fixed.read(1.0) is not None:
+        arrivals.append(time.monotonic())
+    assert len(arrivals) == len(views)
+    assert arrivals[-1] - arrivals[0] == pytest.approx((len(views) - 1) / 10, abs=0.2)
+
 
 # ----------------------------------------------------------------------------- guard
 finite = st.floats(-1e9, 1e9, allow_nan=False)

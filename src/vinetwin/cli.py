@@ -453,7 +453,10 @@ class ServoCmd:
     fps: int = 30
     """Live camera: frames per second (30, 60 or 90)."""
     rate: float | None = None
-    """Playback: folder frames per second (default: as fast as read); bag 0: as fast as read."""
+    """Playback pacing in frames per second. folder: default as fast as read; bag: default the
+    recorded rate, 0 as fast as read."""
+    color: bool = False
+    """Also stream colour aligned to depth (live or bag; kept by --record)."""
     camera_rate: float = 30.0
     """Simulation: camera frames per second."""
     robot_model: str = ""
@@ -503,6 +506,7 @@ class ServoCmd:
             width=self.width,
             height=self.height,
             fps=self.fps,
+            color=self.color,
             rate=self.rate,
             realtime=not self.no_realtime,
             dynamics_factor=self.dynamics_factor,

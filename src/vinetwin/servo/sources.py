@@ -350,17 +350,27 @@ def _find_profile(sensor: Any, stream: Any, fmt: Any, width: int, height: int, f
 class RecordingSource(CameraSource):
     """A RealSense recording (rosbag2 `.db3` as pyrealsense2 2.59 writes it, or a ROS1 `.bag`
     where the installed librealsense reads those), played back through pyrealsense2 with its
-    recorded intrinsics and depth unit. `real_time` paces it at the recorded rate; otherwise
-    every frame is delivered, as fast as it is read. Stamps are the recording's own."""
+    recorded intrinsics and depth unit. `real_time` paces it at the recorded rate (stamps: the
+    recording's own, mapped onto the host clock); otherwise every frame is delivered, as fast as
+    it is read (stamps: the recording's own) or, with `rate`, at that many frames per second
+    (stamps: the moments of delivery)."""
 
     def __init__(
         self,
         path: str | Path,
         *,
         real_time: bool = True,
+        rate: float | None = None,
         color: bool = False,
         camera: CameraModel | None = None,
     ) -> None:
+        if rate is not None and not rate > 0:
+            raise InputError(f"rate must be positive, got {rate}")
+        if rate is not None:
+            real_time = False
+        self.rate = rate
+        self._paced_t0: float | None = None
+        self._paced_n = 0
         rs = _rs()
         self._rs = rs
         path = Path(path)
@@ -418,7 +428,15 @@ class RecordingSource(CameraSource):
         if math.isnan(self.depth_unit):
             self.depth_unit = unit
         stamp = d.get_timestamp() / 1000.0
-        if self.real_time:
+        if self.rate is not None:
+            if self._paced_t0 is None:
+                self._paced_t0 = time.monotonic()
+            wait = self._paced_t0 + self._paced_n / self.rate - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            self._paced_n += 1
+            stamp = time.monotonic()
+        elif self.real_time:
             if self._offset is None:
                 self._offset = time.monotonic() - stamp
             stamp += self._offset
@@ -433,7 +451,7 @@ class RecordingSource(CameraSource):
         return CameraFrame(counts, unit, stamp, int(d.get_frame_number()), color)
 
     def now(self) -> float:
-        return time.monotonic() if self.real_time else self._last
+        return time.monotonic() if self.real_time or self.rate is not None else self._last
 
     def close(self) -> None:
         if not self._stopped:
@@ -459,9 +477,10 @@ def open_source(
     rate: float | None = None,
     serial: str | None = None,
 ) -> CameraSource:
-    """A source from its command-line name: `realsense` (live D405), `bag:PATH` (a recording,
-    at its recorded rate unless `rate` is 0: as fast as possible), `folder:PATH` (a capture
-    folder; paced at `rate` when given). `sim` is built by the simulation (`servo.sim`)."""
+    """A source from its command-line name: `realsense` (live D405), `bag:PATH` (a recording:
+    at its recorded rate by default, as fast as read with `rate` 0, at `rate` frames per second
+    otherwise), `folder:PATH` (a capture folder: as fast as read, or at `rate`). `sim` is built
+    by the simulation (`servo.sim`)."""
     kind, _, arg = spec.partition(":")
     if kind == "realsense":
         if (width, height) not in D405_RESOLUTIONS or fps not in D405_RATES:
@@ -473,7 +492,9 @@ def open_source(
             width, height, fps, color=color, serial=serial or (arg or None), camera=camera
         )
     if kind == "bag" and arg:
-        return RecordingSource(arg, real_time=rate != 0, color=color, camera=camera)
+        return RecordingSource(
+            arg, real_time=rate is None, rate=rate or None, color=color, camera=camera
+        )
     if kind == "folder" and arg:
         return FolderSource(arg, rate=rate or None)
     raise InputError(f"unknown camera '{spec}'; choose one of: {', '.join(CAMERAS)}")
