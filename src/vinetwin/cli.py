@@ -422,7 +422,8 @@ class ServoCmd:
     """Pruning pose id (default: the twin's first)."""
     camera: str = "sim"
     """realsense[:SERIAL] (a live D405), bag:FILE (a RealSense recording), folder:DIR (a capture
-    folder), or sim (rendered from the twin)."""
+    folder), sim (rendered from the twin, simulated time), or render (rendered from the twin at
+    a real robot's pose, in real time: the robot link without a camera)."""
     robot: str = "sim"
     """franka:HOST (franky-control), sim (a free-flying camera), mujoco (the MuJoCo Panda) or
     none (compute and log only)."""

@@ -33,7 +33,7 @@ import numpy.typing as npt
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import ICP_VARIANTS, Cloud, voxel_downsample
 from vinetwin.errors import InputError
-from vinetwin.frames import Array
+from vinetwin.frames import Array, pose_error
 from vinetwin.servo import _icp_kernels as K
 from vinetwin.servo._icp_kernels import NNTree
 
@@ -72,6 +72,12 @@ class ICPConfig:
     min(this, the level's reach) of the edge of the reference view are rejected (m). None: the
     variant's default, `EDGE_REACH` (measured on the sample's views, benchmarks/icp.py: it
     helps point-to-plane, and costs symmetric and point-to-point accuracy)."""
+    cycle_translation: float = 0.0005
+    """At the iteration limit of the final level, an estimate still alternating between pair
+    sets (a limit cycle) whose states lie within this (m)..."""
+    cycle_rotation: float = 0.005
+    """...and this (rad) of each other is accepted as converged, with the cycle's size in
+    `ICPResult.reason`; 0: never."""
     min_points: int = 30
     """Fewer points than this in a cloud is a failure."""
     min_correspondences: int = 20
@@ -275,6 +281,11 @@ class ICP:
             if status in (K.FEW_PAIRS, K.SINGULAR):
                 break
         lv = self._levels[-1]
+        cycle_note = ""
+        if status == K.ITERATION_LIMIT and cfg.cycle_translation > 0 and cfg.cycle_rotation > 0:
+            cycle_note = self._limit_cycle(src_cache[lv.voxel], lv, T, code)
+            if cycle_note:
+                status = K.CONVERGED
         src = current.points
         t = lv.tree
         q, idx, d2 = K.associate(src, T, t.arrays, lv.dmax, _threads())
@@ -289,6 +300,7 @@ class ICP:
             correspondences=n_ok,
             iterations=total,
         )
+        result.reason = cycle_note
         if status == K.FEW_PAIRS:
             result.reason = f"too few correspondences ({pairs} < {cfg.min_correspondences}) within {lv.dmax:.4f} m"
         elif status == K.SINGULAR:
@@ -304,6 +316,30 @@ class ICP:
                 result.converged = False
                 result.reason = degenerate
         return result
+
+    def _limit_cycle(self, src: tuple[NDF, NDF], lv: Any, T: NDF, code: int) -> str:
+        """The final level stopped at its iteration limit: follows it three more iterations.
+        If the estimates stay within the cycle tolerances of each other (a cycle between pair
+        sets, which the tolerances of a single update never call converged), returns the
+        cycle's size as a note; else ""."""
+        cfg = self.config
+        states = [T]
+        for _ in range(3):
+            nxt, _st, _it, _p, _r = K.register_level(
+                src[0], src[1], lv.tree.arrays, lv.normals, lv.use, states[-1], lv.dmax, code,
+                1, 0.0, 0.0, cfg.min_correspondences, cfg.huber_delta, _threads(), False,
+            )  # fmt: skip
+            states.append(nxt)
+        spread_t = spread_r = 0.0
+        for a in states:
+            for b in states:
+                dt, dr = pose_error(a, b)
+                spread_t, spread_r = max(spread_t, dt), max(spread_r, dr)
+        if spread_t <= cfg.cycle_translation and spread_r <= cfg.cycle_rotation:
+            return (
+                f"settled in a limit cycle of {1000 * spread_t:.2f} mm / {1000 * spread_r:.2f} mrad"
+            )
+        return ""
 
     def _degeneracy(self, q: NDF, idx: Any) -> str:
         """Checks the final alignment constrains all six degrees of freedom (point-to-plane

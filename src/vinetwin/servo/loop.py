@@ -199,7 +199,9 @@ def run_loop(
                 continue
             no_frame_since = None
             t_read = time.perf_counter()
-            T_base_camera = frame.T_base_camera if robot is None else robot.T_base_camera()
+            T_base_camera = (
+                frame.T_base_camera if robot is None else robot.T_base_camera_at(frame.stamp)
+            )
             r = servo.step_depth(frame.depth, frame.stamp, T_base_camera, now=source.now())
             latency = source.now() - frame.stamp  # capture to command
             overrun = cfg.max_cycle > 0 and latency > cfg.max_cycle

@@ -35,7 +35,7 @@ import numpy as np
 
 from vinetwin._config import JsonFields
 from vinetwin.errors import InputError, VinetwinError
-from vinetwin.frames import Array, check_pose, invert, se3_exp
+from vinetwin.frames import Array, check_pose, invert, se3_exp, se3_log
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +134,11 @@ class Robot(ABC):
 
     def T_base_camera(self) -> Array:
         return self._pose() @ self.T_flange_camera
+
+    def T_base_camera_at(self, stamp: float) -> Array:
+        """The camera pose when a frame stamped `stamp` (on `clock`) was taken: the pose now,
+        unless the robot keeps a pose history (`FrankaRobot`), which is interpolated."""
+        return self.T_base_camera()
 
     def command(self, twist: Any) -> Array:
         """Sends the camera twist, guarded; returns what was sent."""
@@ -375,10 +380,38 @@ class FrankaRobot(Robot):
     name = "Franka"
 
     def __init__(
-        self, transport: FrankaTransport, T_flange_camera: Any, limits: CommandLimits | None = None
+        self,
+        transport: FrankaTransport,
+        T_flange_camera: Any,
+        limits: CommandLimits | None = None,
+        pose_rate: float = 250.0,
     ) -> None:
         self.transport = transport
+        self._history: deque[tuple[float, Array]] = deque(maxlen=max(int(pose_rate), 2))
         super().__init__(T_flange_camera, limits)
+        self._pose_period = 1.0 / pose_rate if pose_rate > 0 else 0.0
+        if self._pose_period:
+            self._sampler = threading.Thread(target=self._sample, daemon=True, name="poses")
+            self._sampler.start()
+
+    def _sample(self) -> None:
+        """Samples the flange pose at `pose_rate` (the last second kept), so each frame gets the
+        pose of its capture time, not of its processing time."""
+        while not self._closed.wait(self._pose_period):
+            try:
+                T = self._pose()
+            except Exception:  # a failing link is reported by the loop's own reads
+                continue
+            self._history.append((self.clock(), T))
+
+    def T_base_camera_at(self, stamp: float) -> Array:
+        hist = list(self._history)
+        if len(hist) < 2 or not hist[0][0] <= stamp <= hist[-1][0]:
+            return self.T_base_camera()
+        k = next(i for i in range(1, len(hist)) if hist[i][0] >= stamp)
+        (t0, A), (t1, B) = hist[k - 1], hist[k]
+        a = 0.0 if t1 <= t0 else (stamp - t0) / (t1 - t0)
+        return (A @ se3_exp(a * se3_log(invert(A) @ B))) @ self.T_flange_camera
 
     def _pose(self) -> Array:
         T = np.asarray(self.transport.T_base_flange(), float)

@@ -2,8 +2,9 @@
 simulation or on hardware, through `loop.run_loop`.
 
 The pieces, by name (`RunnerConfig.camera` / `.robot`):
-- camera `realsense[:SERIAL]`, `bag:PATH`, `folder:PATH` (`servo.sources`), or `sim` (the
-  simulator's D405, rendered from the twin's mesh);
+- camera `realsense[:SERIAL]`, `bag:PATH`, `folder:PATH` (`servo.sources`), `sim` (the
+  simulator's D405, rendered from the twin's mesh in simulated time), or `render` (the D405
+  rendered in real time at the pose a real robot reports: the robot link without a camera);
 - robot `franka:HOST` (a Franka through franky-control), `sim` (a free-flying camera),
   `mujoco` (the MuJoCo Panda; `robot_model` picks another Panda model), or `none` (no robot:
   twists are computed and logged, and frames that carry a recorded robot pose give the
@@ -111,6 +112,8 @@ def run_pose(
         raise InputError(f"unknown robot '{cfg.robot}'; choose franka:HOST, sim, mujoco or none")
     if sim_camera and robot_kind not in ("sim", "mujoco"):
         raise InputError("the simulated camera needs a simulated robot: --robot sim or mujoco")
+    if cfg.camera == "render" and robot_kind != "franka":
+        raise InputError("the rendered camera follows a real robot's pose: use --robot franka:HOST")
     if not sim_camera and robot_kind in ("sim", "mujoco"):
         raise InputError(
             f"a simulated robot cannot move the camera '{cfg.camera}': use --robot none (replay) "
@@ -173,10 +176,6 @@ def run_pose(
         else:
             from vinetwin.servo.sources import open_source
 
-            source = open_source(
-                cfg.camera, camera=twin.camera, width=cfg.width, height=cfg.height,
-                fps=cfg.fps, color=cfg.color, rate=cfg.rate,
-            )  # fmt: skip
             loop_cfg = cfg.loop
             T_base_ref = twin.T_world_vine @ goal
             header["T_base_goal"] = T_base_ref.tolist()
@@ -186,7 +185,21 @@ def run_pose(
                 transport = FrankyTransport(host, cfg.dynamics_factor, cfg.realtime)
                 robot = FrankaRobot(transport, twin.T_flange_camera, cfg.limits)
                 servo.reset(invert(T_base_ref) @ robot.T_base_camera())
+            if cfg.camera == "render":
+                from vinetwin.render.backends import get_backend
+                from vinetwin.servo.sim import RenderedCameraSource
+
+                mesh = twin.load_mesh()
+                backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
+                source = RenderedCameraSource(
+                    backend, robot, twin.T_world_vine, fps=cfg.fps, seed=cfg.servo.seed
+                )
             else:
+                source = open_source(
+                    cfg.camera, camera=twin.camera, width=cfg.width, height=cfg.height,
+                    fps=cfg.fps, color=cfg.color, rate=cfg.rate,
+                )  # fmt: skip
+            if robot is None:  # replay: the first frame's recorded pose gives the guess
                 first = getattr(source, "capture", None)
                 T0 = first.frames[0].T_base_camera if first is not None else None
                 if T0 is not None:

@@ -302,6 +302,55 @@ class SimCameraSource(CameraSource):
         return self.robot.t
 
 
+class RenderedCameraSource(CameraSource):
+    """A stand-in camera for a real robot: the D405 rendered from the twin's mesh at the pose
+    the robot reports, in real time at `fps`. It closes the loop through a real robot link
+    (a Franka, or franky-sim) without a camera: bring-up and bench tests. `T_base_vine` places
+    the mesh in the robot base (the twin's `T_world_vine`)."""
+
+    def __init__(
+        self,
+        backend: DepthBackend,
+        robot: Any,
+        T_base_vine: Array,
+        *,
+        fps: float = 30.0,
+        sensor: SensorConfig | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.backend = backend
+        self.camera = backend.camera
+        self.depth_unit = backend.camera.depth_unit
+        self.robot = robot
+        self.T_base_vine = np.asarray(T_base_vine, float)
+        self.period = 1.0 / fps
+        self.sensor = sensor or SensorConfig()
+        self.rng = np.random.default_rng(seed)
+        self.number = 0
+        self._next: float | None = None
+        self.description = f"D405 rendered at the robot's pose, {fps:g} fps"
+
+    def read(self, timeout: float = 1.0) -> CameraFrame | None:
+        now = time.monotonic()
+        if self._next is None:
+            self._next = now
+        wait = self._next - now
+        if wait > timeout:
+            time.sleep(timeout)
+            return None
+        if wait > 0:
+            time.sleep(wait)
+        self._next = max(self._next + self.period, time.monotonic())  # drop missed ticks
+        stamp = time.monotonic()
+        T = invert(self.T_base_vine) @ self.robot.T_base_camera()
+        depth = apply_d405_model(self.backend.render(T), self.camera, self.rng, self.sensor)
+        frame = CameraFrame(
+            quantize_depth(depth, self.depth_unit), self.depth_unit, stamp, self.number
+        )
+        self.number += 1
+        return frame
+
+
 def make_servo(
     reference: Cloud,
     camera: CameraModel,
