@@ -256,7 +256,7 @@ def run_loop(
         summary.ended = f"error: {exc}"
         raise
     finally:
-        if robot is not None:
+        if robot is not None and (send or robot.moving):  # a dry run sends nothing, ever
             robot.stop(f"loop ended: {summary.ended}")
         if cycles_ms:
             summary.median_cycle_ms = float(np.median(cycles_ms))

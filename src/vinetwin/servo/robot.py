@@ -157,7 +157,9 @@ class Robot(ABC):
                     log.warning("%s: %s", self.name, note)
             self.last_command_time = now
             if not np.any(w):
-                self._stop_locked("zero twist")
+                # a refused (non-finite) twist is an explicit stop; a zero twist brakes a moving
+                # robot and sends nothing to one at rest
+                self._stop_locked(note or "zero twist", force="stopped" in note)
                 return w
             self._send(w)
             self.last_sent = w
@@ -181,7 +183,7 @@ class Robot(ABC):
         """Stops the robot and the watchdog."""
         with self._lock:
             if not self._closed.is_set():
-                self._stop_locked("close")
+                self._stop_locked("close", force=False)
                 self._closed.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=1.0)
@@ -193,11 +195,13 @@ class Robot(ABC):
         self.close()
 
     # ------------------------------------------------------------------ internals
-    def _stop_locked(self, reason: str) -> None:
+    def _stop_locked(self, reason: str, force: bool = True) -> None:
+        """Brakes; a robot that was not moving is sent nothing unless `force` (an explicit
+        stop), so a dry run sends no command at all."""
         was_moving = self.moving
         self.last_sent = np.zeros(6)
         self.moving = False
-        if was_moving or reason != "zero twist":
+        if was_moving or force:
             self.events.append((self.clock(), f"stop: {reason}"))
             self._halt()
 
