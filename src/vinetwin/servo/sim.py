@@ -240,13 +240,45 @@ def start_pose(
     return best
 
 
-class SimCameraSource(CameraSource):
-    """The simulator's camera: the D405 at the simulated robot's camera pose, rendered from the
-    twin's mesh through the D405 model, streamed as 16-bit counts like the real one.
+class _MeshCamera(CameraSource):
+    """A D405 rendered from the twin's mesh (placed at `T_base_vine` in the robot base) at a
+    robot's camera pose, through the D405 model, streamed as 16-bit counts like the real one."""
 
-    Simulated time: a frame is taken at once; the next one after the loop's processing time
-    (measured from this frame's delivery to the next `read`, or `fixed_period`), rounded up to
-    whole camera periods, during which the robot applies the twist it was last sent."""
+    def __init__(
+        self,
+        backend: DepthBackend,
+        robot: Any,
+        T_base_vine: Array,
+        rng: np.random.Generator,
+        sensor: SensorConfig | None,
+        rate: float,
+    ) -> None:
+        self.backend = backend
+        self.camera = backend.camera
+        self.depth_unit = backend.camera.depth_unit
+        self.robot = robot
+        self.T_base_vine = np.asarray(T_base_vine, float)
+        self.rng = rng
+        self.sensor = sensor or SensorConfig()
+        self.period = 1.0 / rate
+        self.number = 0
+
+    def _frame(self, T_vine_camera: Array, stamp: float) -> CameraFrame:
+        depth = apply_d405_model(
+            self.backend.render(T_vine_camera), self.camera, self.rng, self.sensor
+        )
+        frame = CameraFrame(
+            quantize_depth(depth, self.depth_unit), self.depth_unit, stamp, self.number
+        )
+        self.number += 1
+        return frame
+
+
+class SimCameraSource(_MeshCamera):
+    """The simulator's camera, in simulated time: a frame is taken at once; the next one after
+    the loop's processing time (measured from this frame's delivery to the next `read`, or
+    `fixed_period`), rounded up to whole camera periods, during which the robot applies the
+    twist it was last sent. A disturbance moves the vine."""
 
     def __init__(
         self,
@@ -260,18 +292,11 @@ class SimCameraSource(CameraSource):
         fixed_period: float = 0.0,
         disturbance: Disturbance | None = None,
     ) -> None:
-        self.backend = backend
-        self.camera = backend.camera
-        self.depth_unit = backend.camera.depth_unit
-        self.robot = robot
-        self.T_base_vine = np.asarray(T_base_vine, float)
-        self.rng = rng
-        self.sensor = sensor or SensorConfig()
-        self.period = 1.0 / camera_rate
+        super().__init__(backend, robot, T_base_vine, rng, sensor, camera_rate)
+        self.sim_robot = robot
         self.fixed_period = fixed_period
         self.disturbance = disturbance or Disturbance()
         self.description = f"simulated D405 at {camera_rate:g} fps ({robot.name})"
-        self.number = 0
         self._delivered: float | None = None
         self.T = np.eye(4)
         """The camera in the vine's original frame at the last frame."""
@@ -286,27 +311,22 @@ class SimCameraSource(CameraSource):
                 if self.fixed_period > 0
                 else self.period * max(1, math.ceil(compute / self.period))
             )
-            self.robot.advance(hold)
-        t = self.robot.t
+            self.sim_robot.advance(hold)
+        t = self.sim_robot.t
         self.T = invert(self.T_base_vine) @ self.robot.T_base_camera()
         self.T_rel = invert(self.disturbance.vine_motion(t)) @ self.T
-        depth = apply_d405_model(
-            self.backend.render(self.T_rel), self.camera, self.rng, self.sensor
-        )
-        frame = CameraFrame(quantize_depth(depth, self.depth_unit), self.depth_unit, t, self.number)
-        self.number += 1
+        frame = self._frame(self.T_rel, t)
         self._delivered = time.perf_counter()
         return frame
 
     def now(self) -> float:
-        return self.robot.t
+        return self.sim_robot.t
 
 
-class RenderedCameraSource(CameraSource):
-    """A stand-in camera for a real robot: the D405 rendered from the twin's mesh at the pose
-    the robot reports, in real time at `fps`. It closes the loop through a real robot link
-    (a Franka, or franky-sim) without a camera: bring-up and bench tests. `T_base_vine` places
-    the mesh in the robot base (the twin's `T_world_vine`)."""
+class RenderedCameraSource(_MeshCamera):
+    """A stand-in camera for a real robot: the D405 rendered at the pose the robot reports, in
+    real time at `fps`. It closes the loop through a real robot link (a Franka, or franky-sim)
+    without a camera: bring-up and bench tests. `T_base_vine` is the twin's `T_world_vine`."""
 
     def __init__(
         self,
@@ -318,15 +338,7 @@ class RenderedCameraSource(CameraSource):
         sensor: SensorConfig | None = None,
         seed: int = 0,
     ) -> None:
-        self.backend = backend
-        self.camera = backend.camera
-        self.depth_unit = backend.camera.depth_unit
-        self.robot = robot
-        self.T_base_vine = np.asarray(T_base_vine, float)
-        self.period = 1.0 / fps
-        self.sensor = sensor or SensorConfig()
-        self.rng = np.random.default_rng(seed)
-        self.number = 0
+        super().__init__(backend, robot, T_base_vine, np.random.default_rng(seed), sensor, fps)
         self._next: float | None = None
         self.description = f"D405 rendered at the robot's pose, {fps:g} fps"
 
@@ -342,13 +354,7 @@ class RenderedCameraSource(CameraSource):
             time.sleep(wait)
         self._next = max(self._next + self.period, time.monotonic())  # drop missed ticks
         stamp = time.monotonic()
-        T = invert(self.T_base_vine) @ self.robot.T_base_camera()
-        depth = apply_d405_model(self.backend.render(T), self.camera, self.rng, self.sensor)
-        frame = CameraFrame(
-            quantize_depth(depth, self.depth_unit), self.depth_unit, stamp, self.number
-        )
-        self.number += 1
-        return frame
+        return self._frame(invert(self.T_base_vine) @ self.robot.T_base_camera(), stamp)
 
 
 def make_servo(
