@@ -6,7 +6,10 @@ process with SIGKILL at a named point) losing and corrupting nothing."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -52,6 +55,30 @@ def _square(x: int) -> int:
     if x == 3:
         raise ValueError("three is refused")
     return x * x
+
+
+def _die_on_two(x: int) -> int:
+    if x == 2:
+        os.kill(os.getpid(), signal.SIGKILL)
+    time.sleep(0.05 * (x % 3))
+    return x + 100
+
+
+@pytest.mark.parametrize("kind", ["local", "ray"])
+def test_executor_isolates_a_dying_worker(kind: str) -> None:
+    """Only the job whose worker died fails, however the deaths and completions interleave."""
+    if kind == "ray":
+        pytest.importorskip("ray")
+    for _ in range(2 if kind == "local" else 1):
+        outs = list(
+            run_unordered(
+                _die_on_two, list(range(8)), ExecutorConfig(kind=kind, workers=2, retries=0)
+            )
+        )
+        by = {o.index: o for o in outs}
+        assert sorted(by) == list(range(8)) and len(outs) == 8
+        assert by[2].worker_died and "worker died" in by[2].error
+        assert all(by[i].value == i + 100 for i in range(8) if i != 2)
 
 
 @pytest.mark.parametrize("kind", ["local", "ray"])

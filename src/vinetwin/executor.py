@@ -28,6 +28,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -141,12 +142,6 @@ def worker_threads() -> int:
     return int(os.environ.get("VINETWIN_WORKER_THREADS", "0") or 0)
 
 
-def _init_threads(threads: int) -> None:
-    os.environ.update({k: str(threads) for k in (*THREAD_VARS, "VINETWIN_WORKER_THREADS")})
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    os.environ.setdefault("MUJOCO_GL", "egl")
-
-
 def _call(fn: Callable[[Any], Any], job: Any) -> Any:
     return fn(job)
 
@@ -164,14 +159,15 @@ def run_unordered(
         return
     workers = cfg.workers if cfg.workers > 0 else (os.cpu_count() or 1)
     workers = max(1, min(workers, len(jobs)))
-    if workers == 1:
+    if workers == 1:  # in this process, with all its threads
         for i, job in enumerate(jobs):
             try:
                 yield Outcome(i, fn(job))
             except Exception as exc:  # one job's failure is reported, the others go on
                 yield Outcome(i, error=f"{type(exc).__name__}: {exc}")
         return
-    yield from _run_pool(fn, jobs, cfg, workers)
+    with _worker_env(workers):
+        yield from _run_pool(fn, jobs, cfg, workers)
 
 
 def workers_used(config: ExecutorConfig, n_jobs: int) -> int:
@@ -189,12 +185,27 @@ def workers_used(config: ExecutorConfig, n_jobs: int) -> int:
     return max(1, min(workers, n_jobs))
 
 
+@contextmanager
+def _worker_env(workers: int) -> Iterator[None]:
+    """Caps the threads of the workers spawned meanwhile: set in this process's environment,
+    which spawned workers inherit before they import numpy, numba or Open3D (an initializer
+    would run too late for the libraries that read it at load)."""
+    threads = str(max(1, (os.cpu_count() or 1) // workers))
+    names = (*THREAD_VARS, "VINETWIN_WORKER_THREADS")
+    saved = {k: os.environ.get(k) for k in names}
+    os.environ.update({k: threads for k in names})
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 def _new_pool(workers: int) -> ProcessPoolExecutor:
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    return ProcessPoolExecutor(
-        workers, mp_context=mp.get_context("spawn"), initializer=_init_threads,
-        initargs=(threads,),
-    )  # fmt: skip
+    return ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
 
 
 def _run_pool(
@@ -205,11 +216,17 @@ def _run_pool(
     pending: dict[Future[Any], int] = {}
     try:
         while queue or pending:
+            suspects: list[int] = []
             while queue and len(pending) < 2 * workers:  # bounded: honest progress, flat memory
                 i = queue.pop(0)
-                pending[pool.submit(_call, fn, jobs[i])] = i
-            done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
-            suspects: list[int] = []
+                try:
+                    pending[pool.submit(_call, fn, jobs[i])] = i
+                except BrokenProcessPool:  # a worker died since the last wait
+                    suspects.append(i)
+                    break
+            done = set()
+            if pending and not suspects:
+                done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
             for fut in done:
                 i = pending.pop(fut)
                 try:
