@@ -10,6 +10,7 @@ import os
 import shutil
 import signal
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -195,3 +196,50 @@ def test_cli_exports_a_vineyard_with_ray(
     assert "9 rendered" in out and "ray" in out
     assert main(["export", str(root)]) == 0
     assert "0 rendered, 9 unchanged" in capsys.readouterr().out
+
+
+def test_a_campaign_keeps_its_finished_runs_when_a_worker_dies(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A worker dies at the end of one campaign run: the campaign fails naming that run, the
+    other runs are on disk, and running it again runs only the killed one, then writes the
+    report; with `force` everything runs again."""
+    from vinetwin.errors import VinetwinError
+    from vinetwin.servo.campaign import CampaignConfig, run_campaign
+
+    twin = Twin.load(SAMPLES / "vine_bilateral.twin")
+    cfg = CampaignConfig(
+        preset="quick",
+        variants=("point_to_plane", "symmetric"),
+        duration=3.0,
+        disturbance=False,
+        guess_comparison=False,
+    )
+    out = tmp_path / "campaign"
+    executor = ExecutorConfig(workers=2, retries=0)
+    monkeypatch.setenv(FAULT_VAR, "kill:grid/0/symmetric@run")
+    with pytest.raises(VinetwinError, match=r"1 of 2 runs failed: grid/0/symmetric: .*worker died"):
+        run_campaign(twin, cfg, out, executor=executor)
+    kept = out / "runs" / "grid.0.point_to_plane.json"
+    assert sorted(p.name for p in (out / "runs").iterdir()) == [kept.name]
+    assert not (out / "campaign.json").exists()
+    stamp = kept.stat().st_mtime_ns
+
+    monkeypatch.delenv(FAULT_VAR)
+    seen: list[str] = []
+    data = run_campaign(twin, cfg, out, lambda r, n, total: seen.append(r["key"]), executor)
+    assert seen == ["grid/0/symmetric"] and data["resumed"] == 1
+    assert [r["key"] for r in data["runs"]] == ["grid/0/point_to_plane", "grid/0/symmetric"]
+    assert kept.stat().st_mtime_ns == stamp
+    assert json.loads((out / "campaign.json").read_text())["runs"] == data["runs"]
+    assert "1 of the runs come from an earlier campaign" in (out / "report.md").read_text()
+
+    # other inputs (a longer run) are not taken for done; force runs everything again
+    seen.clear()
+    longer = run_campaign(twin, replace(cfg, duration=3.5), out,
+                          lambda r, n, total: seen.append(r["key"]), executor)  # fmt: skip
+    assert sorted(seen) == ["grid/0/point_to_plane", "grid/0/symmetric"]
+    assert longer["resumed"] == 0
+    seen.clear()
+    run_campaign(twin, cfg, out, lambda r, n, total: seen.append(r["key"]), executor, force=True)
+    assert len(seen) == 2

@@ -307,6 +307,9 @@ class Campaign:
     """Run the runs on this Ray cluster (HOST:6379, auto)."""
     seed: int = 0
     """Seed of the starts, the noise and the registration error."""
+    force: bool = False
+    """Run every run again, even those already in OUT/runs with the same inputs (an earlier
+    campaign that was interrupted or had runs fail keeps its finished runs there)."""
 
     def run(self) -> None:
         import shutil
@@ -332,7 +335,8 @@ class Campaign:
         out = self.out or (self.twin / "campaign" / self.preset)
         executor = _executor(self.ray, self.ray_address, self.workers)
         data = _with_progress(
-            "simulating", lambda progress: run_campaign(twin, cfg, out, progress, executor)
+            "simulating",
+            lambda progress: run_campaign(twin, cfg, out, progress, executor, self.force),
         )
         _print_campaign(data)
         log.info("report: %s", out / "report.html")

@@ -6,7 +6,9 @@ runs (paper Fig. 6) and the runs with and without the initial guess (Fig. 4), wr
 - `report.md` and `report.html`: the table (with the paper's figures beside ours when the preset
   is one of the paper's) and the plots;
 - `fig5_errors.png` (translation and rotation error against time per variant, one column per
-  start), `fig5_trajectories.png` (3D camera paths), `fig6_disturbance.png`, `fig4_guess.png`.
+  start), `fig5_trajectories.png` (3D camera paths), `fig6_disturbance.png`, `fig4_guess.png`;
+- `runs/KEY.json`: each run as it finishes, with the digest of its inputs. A campaign that was
+  interrupted or had runs fail keeps these; running it again runs only the missing ones.
 
 Every run's start is a camera pose at the preset's translation and rotation from the pruning
 pose that still sees the cut (`sim.start_pose`, seeded by the start's index, so every variant
@@ -15,10 +17,11 @@ starts from the same pose). Runs go to `workers` processes, each with its own re
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +33,7 @@ from vinetwin.errors import InputError, VinetwinError
 from vinetwin.executor import (
     ExecutorConfig,
     clear_worker_cache,
+    fault_point,
     run_unordered,
     worker_cache,
     worker_threads,
@@ -40,6 +44,9 @@ from vinetwin.servo.sim import Disturbance, SimConfig, SimRun, simulate, start_p
 from vinetwin.twin.model import Twin, atomic_write_text, load_mesh
 
 log = logging.getLogger(__name__)
+
+#: Version of the per-run files under a report's `runs/` folder.
+CAMPAIGN_FORMAT = 1
 
 #: Initial errors (translation m, rotation rad) of the paper's Tables 1 and 2.
 PRESETS: dict[str, tuple[tuple[float, float], ...]] = {
@@ -133,6 +140,20 @@ class _Job:
     context: dict[str, Any] = field(default_factory=dict)
     """The twin, for the worker (`twin_context`)."""
 
+    def digest(self) -> str:
+        """What this run's result depends on: the job without the mesh's location (its content
+        is in the context's `mesh_sha256`)."""
+        data = asdict(self)
+        data["context"] = {k: v for k, v in self.context.items() if k != "mesh_path"}
+        data["format"] = CAMPAIGN_FORMAT
+        blob = json.dumps(data, sort_keys=True, default=json_default)
+        return hashlib.sha256(blob.encode()).hexdigest()
+
+    @property
+    def file_name(self) -> str:
+        """The run's file in the report's `runs/` folder."""
+        return self.key.replace("/", ".") + ".json"
+
 
 def twin_context(twin: Twin) -> dict[str, Any]:
     """What a worker needs to rebuild a twin's renderer: plain data, sent with each job."""
@@ -211,6 +232,7 @@ def _run_job(job: _Job) -> dict[str, Any]:
         pose_id=job.pose_id,
         arm=worker_arm(job.context, job.robot, np.asarray(job.goal)),
     )
+    fault_point(job.key, "run")
     return {
         "key": job.key,
         "group": job.group,
@@ -275,11 +297,13 @@ def run_jobs(
     executor: ExecutorConfig,
     progress: Callable[[dict[str, Any], int, int], None] | None = None,
     fn: Callable[[Any], dict[str, Any]] | None = None,
+    on_result: Callable[[Any, dict[str, Any]], None] | None = None,
 ) -> tuple[list[tuple[Any, dict[str, Any]]], list[tuple[Any, str]], int]:
     """Runs simulation jobs (`fn`, default one closed-loop run per job) on the executor (a
     local process pool, one worker per core when `workers` is 0, or Ray), each worker with its
     own renderer. Returns (job, result) in completion order, the failed jobs with their error,
-    and the number of workers."""
+    and the number of workers. `on_result(job, result)` is called as each job finishes (to keep
+    it on disk before the others end)."""
     fn = fn or _run_job
     results: list[tuple[Any, dict[str, Any]]] = []
     failed: list[tuple[Any, str]] = []
@@ -288,6 +312,8 @@ def run_jobs(
         for outcome in run_unordered(fn, jobs, executor):
             if outcome.ok:
                 results.append((jobs[outcome.index], outcome.value))
+                if on_result:
+                    on_result(jobs[outcome.index], outcome.value)
                 if progress:
                     progress(outcome.value, len(results) + len(failed), len(jobs))
             else:
@@ -305,32 +331,75 @@ def run_campaign(
     out_dir: Path,
     progress: Callable[[dict[str, Any], int, int], None] | None = None,
     executor: ExecutorConfig | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Runs the campaign and writes its report into out_dir; returns what campaign.json holds.
-    `executor` (default: a local pool of `cfg.workers`) picks where the runs go."""
+    `executor` (default: a local pool of `cfg.workers`) picks where the runs go.
+
+    Each finished run is written at once to `out_dir/runs/KEY.json` with the digest of its
+    inputs, so an interrupted or partly failed campaign keeps its finished runs: running it again
+    runs only the missing ones (all of them with `force`). The report is written once every run
+    is there; when runs fail, the error names them and nothing else is lost."""
     jobs = plan(twin, cfg)
-    pairs, failed, workers = run_jobs(
-        jobs, executor or ExecutorConfig(workers=cfg.workers), progress
-    )
+    runs_dir = out_dir / "runs"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    digests = {j.key: j.digest() for j in jobs}
+    done: dict[str, dict[str, Any]] = {}
+    if not force:
+        for j in jobs:
+            old = _read_run(runs_dir / j.file_name)
+            if old is not None and old.get("digest") == digests[j.key]:
+                done[j.key] = old["result"]
+    todo = [j for j in jobs if j.key not in done]
+    if done:
+        log.info(
+            "%d of %d runs already done with the same inputs (%s); running %d",
+            len(done), len(jobs), runs_dir, len(todo),
+        )  # fmt: skip
+
+    def keep(job: _Job, result: dict[str, Any]) -> None:
+        record = {"format": CAMPAIGN_FORMAT, "digest": digests[job.key], "result": result}
+        text = json.dumps(record, default=json_default)
+        atomic_write_text(runs_dir / job.file_name, text + "\n")
+        done[job.key] = json.loads(text)["result"]  # as a resumed run reads it
+
+    workers = 0
+    failed: list[tuple[Any, str]] = []
+    if todo:
+        _, failed, workers = run_jobs(
+            todo, executor or ExecutorConfig(workers=cfg.workers), progress, on_result=keep
+        )
     if failed:
         raise VinetwinError(
             f"{len(failed)} of {len(jobs)} runs failed: "
             + "; ".join(f"{j.key}: {e}" for j, e in failed[:5])
+            + f". The {len(done)} finished runs are kept in {runs_dir}; run the same command"
+            " again to run only the missing ones."
         )
-    order = {j.key: k for k, j in enumerate(jobs)}
-    results = sorted((r for _, r in pairs), key=lambda r: order[r["key"]])
+    results = [done[j.key] for j in jobs]
     data = {
         "twin": twin.name,
         "config": cfg.to_dict(),
         "starts": [list(s) for s in PRESETS[cfg.preset]],
         "workers": workers,
+        "resumed": len(jobs) - len(todo),
         "runs": results,
     }
     from vinetwin.servo import report
 
-    out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(
         out_dir / "campaign.json", json.dumps(data, indent=1, default=json_default) + "\n"
     )
     report.write_report(data, out_dir)
     return data
+
+
+def _read_run(path: Path) -> dict[str, Any] | None:
+    """A run file, or None when it is missing, unreadable or from another format (run again)."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or record.get("format") != CAMPAIGN_FORMAT:
+        return None
+    return record if isinstance(record.get("result"), dict) else None

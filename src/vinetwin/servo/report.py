@@ -129,9 +129,16 @@ def _speed_line(data: dict[str, Any]) -> str:
     runs = [r["summary"] for r in data["runs"]]
     sim = sum(s["simulated_s"] for s in runs)
     wall = sum(s["wall_s"] for s in runs)
+    workers = f", {data['workers']} workers" if data.get("workers") else ""
+    resumed = data.get("resumed", 0)
     return (
         f"{len(runs)} runs, {sim:.0f} simulated s in {wall:.0f} s of process time "
-        f"({sim / wall:.2f} simulated s per process-second, {data['workers']} workers)."
+        f"({sim / wall:.2f} simulated s per process-second{workers})."
+        + (
+            f" {resumed} of the runs come from an earlier campaign with the same inputs (runs/)."
+            if resumed
+            else ""
+        )
     )
 
 
