@@ -134,11 +134,36 @@ def test_a_worker_killed_mid_export_loses_nothing(
     assert report.count("rendered") == 8
     assert (victim / "references" / "p2.ply").exists()  # written before the kill ...
     assert not (victim / "references" / "p2.json").exists()  # ... but never made current
+    assert not list(root.rglob("references/.*"))  # no temporary file left behind
 
     monkeypatch.delenv(FAULT_VAR)
     again = export_many(_twins(root), executor=executor)
     assert again.ok and again.count("rendered") == 1 and again.count("skipped") == 8
     assert [r.pose_id for r in again.results if r.status == "rendered"] == ["p2"]
+    assert _files(root) == _files(clean)
+
+
+@pytest.mark.parametrize("kind", ["local", "ray"])
+def test_a_writer_killed_before_its_rename_leaves_no_litter(
+    kind: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A worker dies with a reference's temporary file written but not yet renamed (as when
+    a broken pool terminates the other workers mid-file): the export removes the orphan when
+    it ends, and the folder then holds exactly what an uninterrupted export writes."""
+    if kind == "ray":
+        pytest.importorskip("ray")
+    clean = _vineyard(tmp_path, "clean")
+    export_many(_twins(clean), executor=ExecutorConfig(workers=1))
+    root = _vineyard(tmp_path, "killed")
+    victim = find_twins(root)[1] / "references" / "p1.pcd"
+    monkeypatch.setenv(FAULT_VAR, f"kill:{victim}@write")
+    executor = ExecutorConfig(kind=kind, workers=2, retries=0)
+    report = export_many(_twins(root), executor=executor)
+    assert [r.pose_id for r in report.results if r.status == "failed"] == ["p1"]
+    assert not list(root.rglob("references/.*"))  # the killed writer's temporary file is gone
+    monkeypatch.delenv(FAULT_VAR)
+    again = export_many(_twins(root), executor=executor)
+    assert again.ok and again.count("rendered") == 1
     assert _files(root) == _files(clean)
 
 

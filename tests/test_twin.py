@@ -6,6 +6,7 @@ import json
 import math
 import os
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -154,6 +155,38 @@ def test_crash_during_save_keeps_previous_file(twin: Twin, monkeypatch: pytest.M
         twin.save()
     assert twin.json_path.read_bytes() == before
     assert [p.name for p in twin.root.iterdir() if p.name.endswith(".tmp")] == []
+
+
+def test_orphan_temp_files_are_removed_and_live_ones_kept(tmp_path: Path) -> None:
+    """A writer killed between writing its temporary file and the rename leaves an orphan: one
+    from a process that is gone, or older than ORPHAN_AGE_S, is removed; one a live process is
+    still writing is kept, and so are files that are not temporary files."""
+    import subprocess
+    import sys
+
+    from vinetwin.twin.model import ORPHAN_AGE_S, _host_tag, remove_orphan_temp_files
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    host = _host_tag()
+    names = {
+        "dead": f".p1.ply.{host}-{dead.stdout.strip()}.abc123.tmp",
+        "live": f".p2.ply.{host}-{os.getpid()}.def456.tmp",
+        "elsewhere": ".p3.ply.otherhost-1.ghi789.tmp",
+        "elsewhere_old": ".p4.ply.otherhost-1.jkl012.tmp",
+        "old_format_old": ".p5.ply.xyz.tmp",
+        "data": "p6.ply",
+    }
+    for n in names.values():
+        (tmp_path / n).write_bytes(b"partial")
+    old = time.time() - ORPHAN_AGE_S - 10
+    for k in ("elsewhere_old", "old_format_old"):
+        os.utime(tmp_path / names[k], (old, old))
+    removed = sorted(p.name for p in remove_orphan_temp_files(tmp_path))
+    assert removed == sorted(names[k] for k in ("dead", "elsewhere_old", "old_format_old"))
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == sorted(names[k] for k in ("live", "elsewhere", "data"))
+    assert remove_orphan_temp_files(tmp_path / "missing") == []
 
 
 def test_cut_point_editing_keeps_poses_consistent(twin: Twin) -> None:

@@ -50,7 +50,7 @@ from vinetwin.render.reference import (
     write_ply,
 )
 from vinetwin.render.sensor import SensorConfig
-from vinetwin.twin.model import Twin, atomic_write_text, load_mesh
+from vinetwin.twin.model import Twin, atomic_write_text, load_mesh, remove_orphan_temp_files
 
 log = logging.getLogger(__name__)
 
@@ -186,6 +186,7 @@ def plan_export(
     mesh_sha = file_sha256(twin.mesh_path)
     out = twin.references_dir
     out.mkdir(exist_ok=True)
+    remove_orphan_temp_files(out)  # left by writers killed in an earlier run
     skipped: list[PoseResult] = []
     jobs: list[_Job] = []
     name = str(twin.root)
@@ -321,6 +322,8 @@ def _run_planned(
     finally:
         if executor.kind == "local" and report.workers <= 1:
             clear_worker_cache()  # the renderers built in this process
+        for out in sorted({j.out_dir for j in jobs}):  # a broken pool terminates writers mid-file
+            remove_orphan_temp_files(Path(out))
     return report
 
 

@@ -41,7 +41,7 @@ from vinetwin.executor import (
 )
 from vinetwin.render.reference import file_sha256, pose_seed
 from vinetwin.servo.sim import Disturbance, SimConfig, SimRun, simulate, start_pose
-from vinetwin.twin.model import Twin, atomic_write_text, load_mesh
+from vinetwin.twin.model import Twin, atomic_write_text, load_mesh, remove_orphan_temp_files
 
 log = logging.getLogger(__name__)
 
@@ -343,6 +343,8 @@ def run_campaign(
     jobs = plan(twin, cfg)
     runs_dir = out_dir / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
+    for d in (out_dir, runs_dir):  # left by a campaign killed while writing
+        remove_orphan_temp_files(d)
     digests = {j.key: j.digest() for j in jobs}
     done: dict[str, dict[str, Any]] = {}
     if not force:

@@ -32,7 +32,7 @@ from vinetwin.executor import ExecutorConfig, fault_point
 from vinetwin.render.reference import file_sha256, pose_seed
 from vinetwin.servo import campaign
 from vinetwin.servo.sim import SimConfig, simulate, start_pose
-from vinetwin.twin.model import Twin, atomic_write_text
+from vinetwin.twin.model import Twin, atomic_write_text, remove_orphan_temp_files
 
 VALIDATION_FORMAT = 1
 
@@ -160,6 +160,8 @@ def validate_many(
         results[where[id(g)]][(g.pose_id, g.variant)] = d
     for g, err in errors:
         failed[where[id(g)]][(g.pose_id, g.variant)] = err
+    for twin in twins:  # a broken pool terminates writers mid-file
+        remove_orphan_temp_files(twin.root / "validation")
     summaries = []
     for k, (twin, _, _) in enumerate(plans):
         summary = _summarise(twin, cfg, _pose_ids(twin, cfg), results[k], failed[k])
@@ -179,6 +181,7 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
         twin.pose(pid)  # unknown ids fail here, before any work
     out_dir = twin.root / "validation"
     out_dir.mkdir(exist_ok=True)
+    remove_orphan_temp_files(out_dir)  # left by writers killed in an earlier run
     mesh_sha = file_sha256(twin.mesh_path)
     ctx = campaign.twin_context(twin)
     fractions = [(k + 1) / cfg.starts for k in range(cfg.starts)]

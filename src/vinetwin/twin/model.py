@@ -24,7 +24,9 @@ import json
 import math
 import os
 import re
+import socket
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +45,7 @@ from vinetwin.errors import (
     TwinFieldError,
     TwinVersionError,
 )
+from vinetwin.executor import fault_point
 from vinetwin.frames import Array, check_pose, make_pose
 from vinetwin.twin.poses import Approach, approach_of, default_approach, pruning_pose
 from vinetwin.twin.skeleton import Skeleton
@@ -60,15 +63,28 @@ _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 DEFAULT_T_FLANGE_CAMERA: Array = make_pose(np.eye(3), [0.05, 0.0, 0.04])
 
 
+#: Temporary files of `atomic_write_bytes`: `.NAME.HOST-PID.RANDOM.tmp`.
+_TEMP_RE = re.compile(r"^\..+\.(?P<host>[A-Za-z0-9-]+)-(?P<pid>[0-9]+)\.[^.]+\.tmp$")
+#: A temporary file this old is an orphan whoever wrote it (a write takes well under a second).
+ORPHAN_AGE_S = 3600.0
+
+
+def _host_tag() -> str:
+    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:40] or "host"
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Writes `data` to `path` through a flushed temporary file and a rename."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{path.name}.{_host_tag()}-{os.getpid()}.", suffix=".tmp", dir=path.parent
+    )
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
+        fault_point(str(path), "write")  # tests: a writer killed before the rename
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -78,6 +94,40 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 
 def atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_orphan_temp_files(folder: Path) -> list[Path]:
+    """Removes the temporary files that writers killed in the middle of `atomic_write_bytes`
+    left in `folder` (a worker killed by the OOM killer, or terminated by a pool that broke
+    while it was writing): those written on this machine by a process that is gone, and any
+    older than `ORPHAN_AGE_S`. Files being written by a live process are kept. Returns what
+    was removed."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    host, now, removed = _host_tag(), time.time(), []
+    for p in folder.glob(".*.tmp"):
+        m = _TEMP_RE.match(p.name)
+        try:
+            old = now - p.stat().st_mtime > ORPHAN_AGE_S
+        except OSError:
+            continue
+        dead = m is not None and m["host"] == host and not _pid_alive(int(m["pid"]))
+        if old or dead:
+            with contextlib.suppress(OSError):
+                p.unlink()
+                removed.append(p)
+    return removed
 
 
 # ----------------------------------------------------------------------------- entities
@@ -498,6 +548,7 @@ class Twin:
         if not self.root.is_dir():
             raise TwinError(f"{self.root}: twin folder does not exist")
         text = json.dumps(self.to_json(), indent=1)
+        remove_orphan_temp_files(self.root)
         try:
             atomic_write_text(self.json_path, text + "\n")
         except OSError as exc:
