@@ -5,6 +5,7 @@ process with SIGKILL at a named point) losing and corrupting nothing."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -35,7 +36,8 @@ def _vineyard(tmp_path: Path, name: str = "vineyard") -> Path:
 
 
 def _files(root: Path) -> dict[str, object]:
-    """Every reference file under a vineyard: cloud bytes, and sidecars less their timestamp."""
+    """Every file under a vineyard's references: the SHA-256 of each cloud's bytes (a short diff
+    when they differ), and sidecars less their timestamp."""
     out: dict[str, object] = {}
     for p in sorted(root.rglob("references/*")):
         key = str(p.relative_to(root))
@@ -44,7 +46,7 @@ def _files(root: Path) -> dict[str, object]:
             meta.pop("created")
             out[key] = meta
         else:
-            out[key] = p.read_bytes()
+            out[key] = hashlib.sha256(p.read_bytes()).hexdigest()
     return out
 
 
