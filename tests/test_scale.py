@@ -17,8 +17,9 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import SAMPLES
+from vinetwin._faults import FAULT_VAR
 from vinetwin.cli import main
-from vinetwin.executor import FAULT_VAR, ExecutorConfig, Outcome, run_unordered
+from vinetwin.executor import ExecutorConfig, Outcome, run_unordered
 from vinetwin.render.export import export_many
 from vinetwin.servo.validate import ValidateConfig, validate_many
 from vinetwin.twin.model import Twin, find_twins

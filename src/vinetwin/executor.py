@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from vinetwin._config import JsonFields
+from vinetwin._faults import FAULT_VAR
 from vinetwin.errors import InputError, VinetwinError
 
 log = logging.getLogger(__name__)
@@ -40,9 +41,6 @@ log = logging.getLogger(__name__)
 EXECUTORS = ("local", "ray")
 #: Environment variables capping a worker's threads (the workers share the cores).
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
-#: Fault injection for tests: "kill:JOBKEY[@STAGE]" makes the worker running that job kill its
-#: own process at that stage (see `fault_point`).
-FAULT_VAR = "VINETWIN_FAULT"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -117,24 +115,6 @@ def clear_worker_cache() -> None:
                 close()
             except Exception:
                 pass
-
-
-def fault_point(job_key: str, stage: str = "") -> None:
-    """Kills this process when `VINETWIN_FAULT` names this job (and stage): how tests kill a
-    worker in the middle of a job. Does nothing otherwise."""
-    spec = os.environ.get(FAULT_VAR, "")
-    if not spec.startswith("kill:"):
-        return
-    want_key, _, want_stage = spec[5:].partition("@")
-    if want_key == job_key and want_stage == stage:
-        marker = os.environ.get(FAULT_VAR + "_ONCE", "")
-        if marker:  # kill only the first attempt
-            try:
-                fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-                os.close(fd)
-            except FileExistsError:
-                return
-        os.kill(os.getpid(), 9)
 
 
 def worker_threads() -> int:

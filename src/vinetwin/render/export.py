@@ -27,13 +27,13 @@ from typing import Any, Literal
 import numpy as np
 
 import vinetwin
+from vinetwin._faults import fault_point
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import PerceptionConfig
 from vinetwin.errors import InputError, VinetwinError
 from vinetwin.executor import (
     ExecutorConfig,
     clear_worker_cache,
-    fault_point,
     run_unordered,
     worker_cache,
     worker_threads,

@@ -28,12 +28,12 @@ from typing import Any
 import numpy as np
 
 from vinetwin._config import JsonFields, json_default
+from vinetwin._faults import fault_point
 from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
 from vinetwin.errors import InputError, VinetwinError
 from vinetwin.executor import (
     ExecutorConfig,
     clear_worker_cache,
-    fault_point,
     run_unordered,
     worker_cache,
     worker_threads,

@@ -26,9 +26,10 @@ from typing import Any
 import numpy as np
 
 from vinetwin._config import JsonFields, json_default
+from vinetwin._faults import fault_point
 from vinetwin.cloud import ICP_VARIANTS
 from vinetwin.errors import InputError
-from vinetwin.executor import ExecutorConfig, fault_point
+from vinetwin.executor import ExecutorConfig
 from vinetwin.render.reference import file_sha256, pose_seed
 from vinetwin.servo import campaign
 from vinetwin.servo.sim import SimConfig, simulate, start_pose

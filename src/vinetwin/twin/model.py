@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import functools
 import json
 import math
 import os
@@ -35,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 import vinetwin
+from vinetwin._faults import fault_point
 from vinetwin.camera import CameraModel, d405
 from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
 from vinetwin.errors import (
@@ -45,7 +47,6 @@ from vinetwin.errors import (
     TwinFieldError,
     TwinVersionError,
 )
-from vinetwin.executor import fault_point
 from vinetwin.frames import Array, check_pose, make_pose
 from vinetwin.twin.poses import Approach, approach_of, default_approach, pruning_pose
 from vinetwin.twin.skeleton import Skeleton
@@ -69,6 +70,7 @@ _TEMP_RE = re.compile(r"^\..+\.(?P<host>[A-Za-z0-9-]+)-(?P<pid>[0-9]+)\.[^.]+\.t
 ORPHAN_AGE_S = 3600.0
 
 
+@functools.cache
 def _host_tag() -> str:
     return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:40] or "host"
 
@@ -98,11 +100,11 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 def _pid_alive(pid: int) -> bool:
     try:
-        os.kill(pid, 0)
+        os.kill(pid, 0)  # signal 0: only asks whether the process exists
     except ProcessLookupError:
         return False
-    except PermissionError:
-        return True
+    except PermissionError:  # it exists, under another user
+        pass
     return True
 
 
