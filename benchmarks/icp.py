@@ -41,10 +41,11 @@ import numpy as np
 from vinetwin import _lazy
 from vinetwin import frames as fr
 from vinetwin.cloud import Cloud, perceive, voxel_downsample
+from vinetwin.registration.icp import ICP, ICPConfig
 from vinetwin.render.backends import get_backend
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
-from vinetwin.servo.icp import ICP, ICPConfig
-from vinetwin.servo.step import SafetyConfig, Servo
+from vinetwin.servo.config import Limits
+from vinetwin.servo.step import Servo
 from vinetwin.twin import Twin
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -279,7 +280,7 @@ def cycle(twin: Twin, cases: list[Case], repeats: int) -> list[dict[str, Any]]:
                 icp=config_for("warm", v),
                 camera=twin.camera,
                 perception=twin.perception,
-                safety=SafetyConfig(max_linear_acceleration=0, max_angular_acceleration=0),
+                limits=Limits(max_linear_acceleration=0, max_angular_acceleration=0),
             )
             for k in range(repeats + 1):
                 servo.reset(case.T_init)

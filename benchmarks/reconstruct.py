@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from vinetwin import _lazy
+from vinetwin.capture.folder import Capture, read_capture
 from vinetwin.frames import invert
-from vinetwin.reconstruct.capture import Capture, read_capture
 from vinetwin.reconstruct.fusion import FusionConfig, evaluate, fuse, kinematic_poses, observed
 from vinetwin.reconstruct.synthetic import synthetic_capture
 from vinetwin.twin import Twin

@@ -25,7 +25,8 @@ from typing import Any
 
 from vinetwin.executor import ExecutorConfig
 from vinetwin.render.export import export_many
-from vinetwin.servo.validate import ValidateConfig, validate_many
+from vinetwin.sim.config import ValidateConfig
+from vinetwin.sim.validate import validate_many
 from vinetwin.twin.model import Twin, find_twins
 
 ROOT = Path(__file__).resolve().parents[1]

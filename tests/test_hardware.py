@@ -20,18 +20,7 @@ from hypothesis import strategies as st
 
 from tests.conftest import VineViews
 from vinetwin import frames as fr
-from vinetwin.cli import main
-from vinetwin.render.reference import pose_seed
-from vinetwin.servo.loop import CycleLog, LoopConfig, read_log, run_loop
-from vinetwin.servo.robot import (
-    CommandLimits,
-    FrankaRobot,
-    FrankaTransport,
-    KinematicRobot,
-    guard_twist,
-)
-from vinetwin.servo.sim import SimConfig, make_servo, simulate, start_pose
-from vinetwin.servo.sources import (
+from vinetwin.capture.sources import (
     CameraFrame,
     CameraSource,
     FolderSource,
@@ -40,6 +29,21 @@ from vinetwin.servo.sources import (
     open_source,
     quantize_depth,
 )
+from vinetwin.cli import main
+from vinetwin.render.reference import pose_seed
+from vinetwin.servo.loop import CycleLog, LoopConfig, read_log, run_loop
+from vinetwin.servo.config import ServoConfig
+from vinetwin.servo.robot import (
+    CommandLimits,
+    FrankaRobot,
+    FrankaTransport,
+    guard_twist,
+)
+from vinetwin.servo.step import make_servo
+from vinetwin.sim.config import SimConfig
+from vinetwin.sim.rig import start_pose
+from vinetwin.sim.robots import KinematicRobot
+from vinetwin.sim.simulate import simulate
 
 rs = pytest.importorskip("pyrealsense2")
 
@@ -99,8 +103,8 @@ def test_live_d405_through_the_real_library(vine_views: VineViews) -> None:
     pyrealsense2's sensor API, as it opens a real one: frames arrive bit-exact with the
     stream's intrinsics and depth unit, stamped on the host clock, colour aligned to depth; a
     camera that stops gives None after the timeout."""
-    from vinetwin.reconstruct.realsense import SoftwareD405
-    from vinetwin.servo.sources import RealSenseSource
+    from vinetwin.capture.realsense import SoftwareD405
+    from vinetwin.capture.sources import RealSenseSource
 
     cam = vine_views.twin.camera
     soft = SoftwareD405(cam, fps=30)
@@ -144,8 +148,8 @@ def test_recording_from_the_device_plays_back(vine_views: VineViews, tmp_path: P
     """A recording made from the (software) D405 while streaming plays back every frame in
     order, bit-exact, with its intrinsics and depth unit; as fast as read, or paced at the
     recorded 30 fps."""
-    from vinetwin.reconstruct.realsense import SoftwareD405
-    from vinetwin.servo.sources import RealSenseSource
+    from vinetwin.capture.realsense import SoftwareD405
+    from vinetwin.capture.sources import RealSenseSource
 
     cam = vine_views.twin.camera
     views = _views(vine_views, 15)
@@ -526,7 +530,7 @@ def test_servo_closes_the_loop_on_a_franka_through_franky_sim(
             twin.save()
             cfg = RunnerConfig(
                 camera="render", robot=f"franka:{model.hostname}", realtime=False,
-                servo=SimConfig(max_linear=0.05, max_angular=0.25), limits=limits,
+                servo=ServoConfig(), limits=limits,
                 loop=LoopConfig(duration=8.0, settle=1.0),
             )  # fmt: skip
             summary, path = run_pose(Twin.load(twin_dir), cfg, log_path=tmp_path / "franka.jsonl")

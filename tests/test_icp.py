@@ -11,8 +11,8 @@ from tests.conftest import VineViews, shared
 from vinetwin import _lazy
 from vinetwin import frames as fr
 from vinetwin.cloud import Cloud
-from vinetwin.servo import _icp_kernels as K
-from vinetwin.servo.icp import ICP, ICPConfig, view_edge_mask
+from vinetwin.registration import _kernels as K
+from vinetwin.registration.icp import ICP, ICPConfig, view_edge_mask
 
 VARIANTS = ["point_to_point", "lm", "point_to_plane", "symmetric"]
 

@@ -11,8 +11,10 @@ import pytest
 from tests.conftest import VineViews, shared
 from vinetwin import _lazy
 from vinetwin import frames as fr
-from vinetwin.servo.panda import PANDA_DIR, PandaArm, goal_placement
-from vinetwin.servo.sim import SimConfig, simulate, start_pose
+from vinetwin.sim.panda import PANDA_DIR, PandaArm, goal_placement
+from vinetwin.sim.config import SimConfig
+from vinetwin.sim.rig import start_pose
+from vinetwin.sim.simulate import simulate
 
 # Franka's published (modified) DH parameters: a, d, alpha per joint, then the flange
 DH = [

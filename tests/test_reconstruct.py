@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import VineViews
-from vinetwin.reconstruct.capture import CaptureError, read_capture
+from vinetwin.capture.folder import CaptureError, read_capture
 from vinetwin.reconstruct.fusion import FusionConfig, evaluate, fuse, kinematic_poses, observed
 from vinetwin.reconstruct.synthetic import synthetic_capture
 
@@ -135,7 +135,7 @@ def test_realsense_recording_round_trip(capture: Path, tmp_path: Path) -> None:
     """A capture written as a RealSense recording through pyrealsense2's software device and
     recorder (no camera needed) plays back into the same depth, intrinsics and colour."""
     pytest.importorskip("pyrealsense2")
-    from vinetwin.reconstruct.realsense import read_recording, write_recording
+    from vinetwin.capture.realsense import read_recording, write_recording
 
     cap = read_capture(capture)
     cap.frames = cap.frames[:5]

@@ -21,7 +21,8 @@ from vinetwin._faults import FAULT_VAR
 from vinetwin.cli import main
 from vinetwin.executor import ExecutorConfig, Outcome, run_unordered
 from vinetwin.render.export import export_many
-from vinetwin.servo.validate import ValidateConfig, validate_many
+from vinetwin.sim.config import ValidateConfig
+from vinetwin.sim.validate import validate_many
 from vinetwin.twin.model import Twin, find_twins
 
 
@@ -233,7 +234,8 @@ def test_a_campaign_keeps_its_finished_runs_when_a_worker_dies(
     other runs are on disk, and running it again runs only the killed one, then writes the
     report; with `force` everything runs again."""
     from vinetwin.errors import VinetwinError
-    from vinetwin.servo.campaign import CampaignConfig, run_campaign
+    from vinetwin.sim.campaign import run_campaign
+    from vinetwin.sim.config import CampaignConfig
 
     twin = Twin.load(SAMPLES / "vine_bilateral.twin")
     cfg = CampaignConfig(

@@ -11,11 +11,12 @@ import pytest
 from tests.conftest import VineViews
 from vinetwin import frames as fr
 from vinetwin.cloud import Cloud
-from vinetwin.servo.icp import ICPConfig
+from vinetwin.registration.icp import ICPConfig
 from vinetwin.servo.pbvs import Limits, pbvs_twist
 from vinetwin.servo.step import SafetyConfig, Servo
 
 NO_RAMP = {"max_linear_acceleration": 0.0, "max_angular_acceleration": 0.0}
+NO_RAMP_LIMITS = Limits(**NO_RAMP)
 
 
 def seen_from(ref: Cloud, T_ref_cur: np.ndarray) -> Cloud:
@@ -36,7 +37,8 @@ def servo(ref: Cloud, vine_views: VineViews, **safety: float) -> Servo:
         icp=ICPConfig(variant="point_to_plane"),
         camera=vine_views.twin.camera,
         perception=vine_views.twin.perception,
-        safety=SafetyConfig(**{**NO_RAMP, **safety}),  # type: ignore[arg-type]
+        safety=SafetyConfig(**safety),  # type: ignore[arg-type]
+        limits=NO_RAMP_LIMITS,
     )
 
 
@@ -125,8 +127,8 @@ def test_pose_jump_is_refused_and_the_restart_is_ramped(ref: Cloud, vine_views: 
     r = s.step(seen_from(ref, jumped), 2 / 30, T_base_camera=moved)
     assert r.trusted, r.reason
     dt = 1 / 30
-    assert np.linalg.norm(r.twist[:3]) <= s.safety.max_linear_acceleration * dt + 1e-12
-    assert np.linalg.norm(r.twist[3:]) <= s.safety.max_angular_acceleration * dt + 1e-12
+    assert np.linalg.norm(r.twist[:3]) <= s.limits.max_linear_acceleration * dt + 1e-12
+    assert np.linalg.norm(r.twist[3:]) <= s.limits.max_angular_acceleration * dt + 1e-12
     assert np.linalg.norm(r.twist) > 0
 
 
@@ -188,9 +190,8 @@ def test_error_decays_exponentially_with_perfect_alignment(
     s = Servo(
         ref,
         gain=lam,
-        limits=Limits(max_linear=10.0, max_angular=10.0),
+        limits=Limits(max_linear=10.0, max_angular=10.0, **NO_RAMP),
         camera=vine_views.twin.camera,
-        safety=SafetyConfig(**NO_RAMP),  # type: ignore[arg-type]
     )
     T = fr.make_pose(fr.so3_exp([0.01, -0.02, 0.015]), [0.006, 0.004, -0.005])
     e0 = float(np.linalg.norm(fr.se3_log(T)))

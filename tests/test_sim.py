@@ -10,8 +10,11 @@ import pytest
 
 from tests.conftest import VineViews
 from vinetwin import frames as fr
-from vinetwin.servo.campaign import PRESETS, CampaignConfig, run_campaign
-from vinetwin.servo.sim import Disturbance, SimConfig, SimRun, simulate, start_pose
+from vinetwin.sim.campaign import run_campaign
+from vinetwin.sim.config import CampaignConfig, Disturbance, SimConfig
+from vinetwin.sim.paper import PRESETS
+from vinetwin.sim.rig import start_pose
+from vinetwin.sim.simulate import SimRun, simulate
 
 
 def _goal_and_start(vine_views: VineViews, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -136,7 +139,8 @@ def test_unknown_simulation_is_named() -> None:
 def test_validate_writes_the_map_and_resumes(sample_twin_dir: Path, tmp_path: Path) -> None:
     import shutil
 
-    from vinetwin.servo.validate import ValidateConfig, validate
+    from vinetwin.sim.config import ValidateConfig
+    from vinetwin.sim.validate import validate
     from vinetwin.twin import Twin
 
     root = tmp_path / "v.twin"
@@ -154,7 +158,7 @@ def test_validate_writes_the_map_and_resumes(sample_twin_dir: Path, tmp_path: Pa
         assert (root / "validation" / fn).exists()
     saved = Twin.load(root).pose("p1").extra["validation"]
     assert saved["variants"]["symmetric"]["success_rate"] == 1.0
-    from vinetwin.cli import _servo_ability
+    from vinetwin.twin.summary import servo_ability as _servo_ability
 
     assert _servo_ability(saved, "symmetric") == "100% of 2 starts; basin 40 mm / 0.10 rad"
     assert _servo_ability(saved, "lm") == "not validated with lm"

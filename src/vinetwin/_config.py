@@ -5,6 +5,8 @@ written by a newer vinetwin still loads."""
 from __future__ import annotations
 
 import dataclasses
+import functools
+import typing
 from typing import Any, Self
 
 
@@ -25,5 +27,29 @@ class JsonFields:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Self:
-        names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-        return cls(**{k: v for k, v in data.items() if k in names})
+        """The dataclass from `to_dict`'s output; nested config dataclasses are rebuilt from
+        their dicts, tuples from lists, and unknown keys are ignored."""
+        hints = _hints(cls)
+        out: dict[str, Any] = {}
+        for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+            if f.name not in data:
+                continue
+            v, t = data[f.name], hints.get(f.name)
+            if isinstance(v, dict) and isinstance(t, type) and issubclass(t, JsonFields):
+                v = t.from_dict(v)
+            elif isinstance(v, list) and typing.get_origin(t) is tuple:
+                v = _tuple(v)
+            out[f.name] = v
+        return cls(**out)
+
+
+def _tuple(v: list[Any]) -> tuple[Any, ...]:
+    return tuple(_tuple(x) if isinstance(x, list) else x for x in v)
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    try:
+        return typing.get_type_hints(cls)
+    except (NameError, TypeError):  # an annotation only known to type checkers
+        return {}

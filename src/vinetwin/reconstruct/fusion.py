@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 
 from vinetwin import _lazy
+from vinetwin.capture.folder import Capture, CaptureError
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, invert, transform_points
-from vinetwin.reconstruct.capture import Capture, CaptureError
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from vinetwin.capture.folder import Capture, CaptureError
 from vinetwin.cloud import PerceptionConfig, perceive
 from vinetwin.frames import Array
-from vinetwin.reconstruct.capture import Capture, CaptureError
-from vinetwin.servo.icp import ICP, ICPConfig
+from vinetwin.registration.icp import ICP, ICPConfig
 
 
 @dataclass

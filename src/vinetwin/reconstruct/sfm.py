@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from vinetwin.capture.folder import Capture, CaptureError
 from vinetwin.frames import Array, invert, make_pose
-from vinetwin.reconstruct.capture import Capture, CaptureError
 
 
 @dataclass

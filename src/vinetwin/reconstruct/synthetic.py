@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from vinetwin.capture.folder import write_capture
 from vinetwin.frames import Array, look_at, make_pose, so3_exp, transform_points
-from vinetwin.reconstruct.capture import write_capture
 from vinetwin.render.backends import get_backend
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
 from vinetwin.twin.model import Twin

@@ -24,7 +24,7 @@ from vinetwin import conventions as cv
 from vinetwin.camera import CameraModel
 from vinetwin.errors import BackendUnavailable, InputError
 from vinetwin.frames import check_pose
-from vinetwin.twin.model import check_mesh_arrays
+from vinetwin.mesh import check_mesh_arrays
 
 BackendName = Literal["open3d", "pyrender", "mujoco"]
 BACKENDS: tuple[BackendName, ...] = ("open3d", "pyrender", "mujoco")

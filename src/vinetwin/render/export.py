@@ -39,10 +39,12 @@ from vinetwin.executor import (
     worker_threads,
     workers_used,
 )
+from vinetwin.files import file_sha256
+from vinetwin.jobstore import JobStore
+from vinetwin.mesh import load_mesh
 from vinetwin.render.backends import BACKENDS, DepthBackend, get_backend
 from vinetwin.render.reference import (
     REFERENCE_FORMAT,
-    file_sha256,
     inputs_digest,
     pose_seed,
     render_reference,
@@ -50,7 +52,7 @@ from vinetwin.render.reference import (
     write_ply,
 )
 from vinetwin.render.sensor import SensorConfig
-from vinetwin.twin.model import Twin, atomic_write_text, load_mesh, remove_orphan_temp_files
+from vinetwin.twin.model import Twin
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +139,7 @@ def _run_job(job: _Job) -> PoseResult:
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         }
         # the sidecar is written last: a reference is current only once it exists
-        atomic_write_text(out / f"{job.pose_id}.json", json.dumps(meta, indent=1) + "\n")
+        _store(out).put(job.pose_id, meta["inputs_sha256"], meta)
         return PoseResult(
             job.pose_id, "rendered", len(ref.cloud), time.perf_counter() - t0, warning=warning,
             twin=job.twin,
@@ -153,16 +155,17 @@ def _run_job(job: _Job) -> PoseResult:
 
 
 # ----------------------------------------------------------------------------- driver
+def _store(folder: Path) -> JobStore:
+    """The references folder: a sidecar `POSE.json` per reference, carrying the digest of its
+    inputs (`inputs_sha256`); its clouds `POSE.ply` and `.pcd` are its companions."""
+    return JobStore(
+        folder, REFERENCE_FORMAT, format_key="reference_format", digest_key="inputs_sha256"
+    )
+
+
 def _is_current(out: Path, pose_id: str, digest: str) -> bool:
-    meta = out / f"{pose_id}.json"
-    if not (
-        meta.exists() and (out / f"{pose_id}.ply").exists() and (out / f"{pose_id}.pcd").exists()
-    ):
-        return False
-    try:
-        return json.loads(meta.read_text()).get("inputs_sha256") == digest
-    except (OSError, ValueError):
-        return False
+    companions = [out / f"{pose_id}.ply", out / f"{pose_id}.pcd"]
+    return _store(out).current(pose_id, digest, companions) is not None
 
 
 def plan_export(
@@ -185,8 +188,7 @@ def plan_export(
     load_mesh(twin.mesh_path)  # refuse a bad mesh once, before any worker starts
     mesh_sha = file_sha256(twin.mesh_path)
     out = twin.references_dir
-    out.mkdir(exist_ok=True)
-    remove_orphan_temp_files(out)  # left by writers killed in an earlier run
+    _store(out).open()  # removes what writers killed in an earlier run left
     skipped: list[PoseResult] = []
     jobs: list[_Job] = []
     name = str(twin.root)
@@ -323,7 +325,7 @@ def _run_planned(
         if executor.kind == "local" and report.workers <= 1:
             clear_worker_cache()  # the renderers built in this process
         for out in sorted({j.out_dir for j in jobs}):  # a broken pool terminates writers mid-file
-            remove_orphan_temp_files(Path(out))
+            _store(Path(out)).clean()
     return report
 
 
@@ -338,6 +340,41 @@ def _finish(report: ExportReport, t_start: float, several: bool) -> ExportReport
     return report
 
 
+def export_twins(
+    path: str | Path,
+    pose_ids: Sequence[str] = (),
+    *,
+    backend: str = "open3d",
+    workers: int = 0,
+    seed: int = 0,
+    clean: bool = False,
+    force: bool = False,
+    executor: ExecutorConfig | None = None,
+    progress: Callable[[PoseResult, int, int], None] | None = None,
+) -> tuple[ExportReport, Path]:
+    """`vinetwin export`: the references of one twin folder (`pose_ids`: some of its poses) or
+    of every twin of a vineyard folder; `clean` renders without the D405 model. Returns the
+    report and the folder the references went to."""
+    from vinetwin.twin.model import find_twins
+
+    roots = find_twins(path)
+    sensor = SensorConfig(enabled=not clean)
+    if len(roots) == 1:
+        twin = Twin.load(roots[0])
+        report = export_references(
+            twin, pose_ids or None, backend=backend, workers=workers, seed=seed, sensor=sensor,
+            force=force, executor=executor, progress=progress,
+        )  # fmt: skip
+        return report, twin.references_dir
+    if pose_ids:
+        raise InputError("--poses selects poses of one twin, not of a vineyard")
+    report = export_many(
+        [Twin.load(r) for r in roots], backend=backend, workers=workers, seed=seed,
+        sensor=sensor, force=force, executor=executor, progress=progress,
+    )  # fmt: skip
+    return report, Path(path)
+
+
 def check_export_ok(report: ExportReport) -> None:
     """Raises VinetwinError listing the failed poses, if any."""
     failed = [r for r in report.results if r.status == "failed"]
@@ -346,3 +383,27 @@ def check_export_ok(report: ExportReport) -> None:
             f"{len(failed)} of {len(report.results)} references failed: "
             + "; ".join(f"{r.pose_id}: {r.error}" for r in failed)
         )
+
+
+def print_report(report: ExportReport, where: Path) -> None:
+    """Prints one row per reference and a line of totals."""
+    from rich.console import Console
+    from rich.table import Table
+
+    several = len({r.twin for r in report.results}) > 1
+    table = Table("pose", "status", "points", "seconds", "note")
+    for r in report.results:
+        table.add_row(
+            f"{Path(r.twin).name}/{r.pose_id}" if several else r.pose_id,
+            r.status,
+            str(r.points) if r.status == "rendered" else "",
+            f"{r.seconds:.2f}",
+            r.error or r.warning,
+        )
+    con = Console()
+    con.print(table)
+    con.print(
+        f"{report.count('rendered')} rendered, {report.count('skipped')} unchanged, "
+        f"{report.count('failed')} failed in {report.seconds:.1f} s "
+        f"({report.executor}, {report.workers} worker{'s' * (report.workers != 1)}) -> {where}"
+    )

@@ -3,11 +3,47 @@ cloud (as a top and a side view), for people to look at."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vinetwin.render.reference import Reference
+
+if TYPE_CHECKING:
+    from vinetwin.twin.model import Twin
+
+log = logging.getLogger(__name__)
+
+
+def preview_pose(
+    twin: Twin, pose_id: str, out: str | Path, backend: str = "open3d", seed: int = 0
+) -> Reference:
+    """Renders one pose's reference (the export's settings and noise seed) and writes its
+    preview PNG to `out`; returns the reference."""
+    from vinetwin.render.backends import get_backend
+    from vinetwin.render.reference import pose_seed, render_reference
+    from vinetwin.render.sensor import SensorConfig
+
+    pose = twin.pose(pose_id)
+    mesh = twin.load_mesh()
+    renderer = get_backend(backend, mesh.vertices, mesh.faces, twin.camera)
+    try:
+        ref = render_reference(
+            renderer, pose.T_vine_camera, twin.perception, SensorConfig(), pose_seed(seed, pose.id)
+        )
+    finally:
+        renderer.close()
+    save_preview(ref, out, f"{twin.name} / {pose.id} ({backend})")
+    if ref.cloud.empty:
+        log.warning(
+            "pose %s sees nothing within %.2f m: empty reference cloud",
+            pose.id,
+            twin.perception.max_depth,
+        )
+    log.info("wrote %s (%d points)", out, len(ref.cloud))
+    return ref
 
 
 def save_preview(ref: Reference, path: str | Path, title: str = "") -> None:

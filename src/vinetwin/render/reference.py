@@ -15,6 +15,7 @@ import numpy.typing as npt
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.errors import VinetwinError
+from vinetwin.files import atomic_write_bytes
 from vinetwin.render.backends import DepthBackend
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
 
@@ -64,7 +65,9 @@ def write_ply(path: Path, cloud: Cloud) -> None:
         + "".join(f"property float {n}\n" for n in names)
         + "end_header\n"
     )
-    _atomic(path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes())
+    atomic_write_bytes(
+        path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes()
+    )
 
 
 def write_pcd(path: Path, cloud: Cloud) -> None:
@@ -83,7 +86,9 @@ def write_pcd(path: Path, cloud: Cloud) -> None:
         f"COUNT {' '.join(['1'] * k)}\n"
         f"WIDTH {len(cloud)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(cloud)}\nDATA binary\n"
     )
-    _atomic(path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes())
+    atomic_write_bytes(
+        path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes()
+    )
 
 
 def read_reference_cloud(path: Path) -> Cloud:
@@ -97,12 +102,6 @@ def read_reference_cloud(path: Path) -> Cloud:
     pts = np.asarray(pc.points, dtype=np.float64)
     nrm = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
     return Cloud(pts, nrm)
-
-
-def _atomic(path: Path, data: bytes) -> None:
-    from vinetwin.twin.model import atomic_write_bytes
-
-    atomic_write_bytes(path, data)
 
 
 def inputs_digest(
@@ -129,11 +128,3 @@ def inputs_digest(
         sort_keys=True,
     )
     return hashlib.sha256(blob.encode()).hexdigest()
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()

@@ -31,40 +31,16 @@ from typing import IO, Any
 
 import numpy as np
 
-from vinetwin._config import JsonFields, json_default
+from vinetwin._config import json_default
+from vinetwin.capture.sources import CameraFrame, CameraSource
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, invert, pose_error
+from vinetwin.servo.config import LoopConfig
 from vinetwin.servo.robot import Robot
-from vinetwin.servo.sources import CameraFrame, CameraSource
 from vinetwin.servo.step import Servo, StepResult
 
 LOG_FORMAT = "vinetwin-servo-log"
 LOG_VERSION = 1
-
-
-@dataclass(frozen=True, kw_only=True)
-class LoopConfig(JsonFields):
-    """How the loop runs and when it ends."""
-
-    dry_run: bool = False
-    """Compute and log twists, send none."""
-    duration: float = 0.0
-    """End after this many seconds of frames (stamp clock); 0: no limit."""
-    max_frames: int = 0
-    """End after this many frames; 0: no limit."""
-    settle: float = 2.0
-    """End once the servo has reported being at its goal for this long (s); 0: never."""
-    frame_timeout: float = 0.2
-    """Stop the robot when no frame came for this long (s)."""
-    camera_lost: float = 2.0
-    """End the run when no frame came for this long (s)."""
-    max_cycle: float = 0.1
-    """A frame whose command comes later than this after its capture (stamp) sends zero
-    instead; 0: no check (simulation, where time is simulated)."""
-
-    def __post_init__(self) -> None:
-        if self.frame_timeout <= 0 or self.camera_lost < self.frame_timeout:
-            raise InputError("frame_timeout must be positive and camera_lost >= frame_timeout")
 
 
 @dataclass
@@ -99,6 +75,23 @@ class LoopSummary:
     camera_timeouts: int = 0
     median_cycle_ms: float = math.nan
     loop_rate_hz: float = math.nan
+
+    def describe(self) -> str:
+        """The summary as `vinetwin servo` prints it."""
+        lines = [
+            f"{self.frames} frames, {self.trusted} trusted, {self.sent} commands sent; "
+            f"ended: {self.ended}; at goal: {self.at_goal}"
+        ]
+        if self.final_error is not None:
+            t, r = self.final_error
+            lines.append(f"last estimated error: {1000 * t:.2f} mm, {r:.4f} rad")
+        if self.reasons:
+            lines.append("refused: " + ", ".join(f"{k} x{v}" for k, v in self.reasons.items()))
+        lines.append(
+            f"median cycle {self.median_cycle_ms:.1f} ms, {self.loop_rate_hz:.1f} Hz; "
+            f"overruns {self.overruns}, camera timeouts {self.camera_timeouts}"
+        )
+        return "\n".join(lines)
 
 
 class CycleLog:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin.frames import Array, compose, invert, skew, so3_log
+from vinetwin.servo.config import Limits
 
 
 def pbvs_error(T_ref_cur: Any) -> Array:
@@ -73,16 +74,6 @@ class Gain:
             return self.l0
         a = self.l0 - self.l_inf
         return a * math.exp(-self.l0_slope / a * error_norm) + self.l_inf
-
-
-@dataclass(frozen=True, kw_only=True)
-class Limits:
-    """Twist saturation that keeps the twist's direction (one common scale factor)."""
-
-    max_linear: float = 0.10
-    """Largest linear speed, m/s."""
-    max_angular: float = 0.5
-    """Largest angular speed, rad/s."""
 
 
 def saturate(twist: Any, limits: Limits) -> Array:

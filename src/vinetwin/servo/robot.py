@@ -14,9 +14,10 @@ passes one guard, the same for every robot, before it leaves the adapter:
 Twists are the camera's (v, omega), expressed in the camera frame, as `Servo.step` gives them;
 `T_flange_camera` (the twin's hand-eye transform) relates the camera to the flange.
 
-Implementations: `KinematicRobot` (a free-flying camera), `MujocoRobot` (vinetwin's or the
-Menagerie's Panda in MuJoCo), `FrankaRobot` (a real Panda or FR3 through the `franky-control`
-library, imported only when used; its `FrankaTransport` is the one seam a test replaces).
+Implementations: `FrankaRobot` here (a real Panda or FR3 through the `franky-control` library,
+imported only when used; its `FrankaTransport` is the one seam a test replaces), and the
+simulated arms of `vinetwin.sim.robots` (`KinematicRobot`, a free-flying camera; `MujocoRobot`,
+vinetwin's or the Menagerie's Panda in MuJoCo).
 """
 
 from __future__ import annotations
@@ -28,46 +29,19 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from vinetwin._config import JsonFields
-from vinetwin.errors import InputError, VinetwinError
+from vinetwin.errors import VinetwinError
 from vinetwin.frames import Array, check_pose, invert, se3_exp, se3_log
+from vinetwin.servo.config import CommandLimits
 
 log = logging.getLogger(__name__)
 
 
 class RobotError(VinetwinError):
     """The robot cannot be reached or refused a command (a reflex, a lost connection)."""
-
-
-@dataclass(frozen=True, kw_only=True)
-class CommandLimits(JsonFields):
-    """What may leave the adapter. The defaults suit servoing 10-30 cm from a vine."""
-
-    max_linear: float = 0.10
-    """Camera speed, m/s."""
-    max_angular: float = 0.5
-    """rad/s."""
-    max_linear_acceleration: float = 0.5
-    """Ramp on speed increases, m/s^2; 0: none."""
-    max_angular_acceleration: float = 2.5
-    """rad/s^2; 0: none."""
-    watchdog: float = 0.2
-    """Stop when no command has come for this long (s)."""
-
-    def __post_init__(self) -> None:
-        for name in ("max_linear", "max_angular", "watchdog"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise InputError(f"CommandLimits.{name} must be positive and finite, got {v}")
-        for name in ("max_linear_acceleration", "max_angular_acceleration"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"CommandLimits.{name} must be >= 0, got {v}")
 
 
 def guard_twist(twist: Any, previous: Array, dt: float, limits: CommandLimits) -> tuple[Array, str]:
@@ -221,80 +195,6 @@ class Robot(ABC):
 
     @abstractmethod
     def _halt(self) -> None: ...
-
-
-# ----------------------------------------------------------------------------- simulated
-class SimulatedRobot(Robot):
-    """A simulated arm in simulated time: `advance(dt)` applies the held twist for dt s (the
-    watchdog is checked against simulated time first)."""
-
-    def __init__(self, T_flange_camera: Any, limits: CommandLimits | None = None) -> None:
-        self.t = 0.0
-        self._held = np.zeros(6)
-        super().__init__(T_flange_camera, limits, clock=lambda: self.t, watchdog_thread=False)
-
-    def advance(self, dt: float) -> None:
-        self.check_watchdog()
-        self._apply(self._held, dt)
-        self.t += dt
-
-    def _send(self, twist: Array) -> None:
-        self._held = twist.copy()
-
-    def _halt(self) -> None:
-        self._held = np.zeros(6)
-
-    @abstractmethod
-    def _apply(self, twist: Array, dt: float) -> None: ...
-
-
-class KinematicRobot(SimulatedRobot):
-    """A perfect velocity-controlled camera: its pose integrates the twist exactly."""
-
-    name = "kinematic camera"
-
-    def __init__(
-        self,
-        T_base_camera: Any,
-        T_flange_camera: Any = None,
-        limits: CommandLimits | None = None,
-    ) -> None:
-        T_fc = np.eye(4) if T_flange_camera is None else T_flange_camera
-        super().__init__(T_fc, limits)
-        self._T = check_pose(T_base_camera, "T_base_camera").copy()
-
-    def _pose(self) -> Array:
-        return self._T @ invert(self.T_flange_camera)
-
-    def T_base_camera(self) -> Array:
-        return self._T.copy()
-
-    def _apply(self, twist: Array, dt: float) -> None:
-        self._T = self._T @ se3_exp(twist * dt)
-
-
-class MujocoRobot(SimulatedRobot):
-    """The Panda of `servo.panda.PandaArm` (its D405 at the arm's own hand-eye transform)."""
-
-    name = "MuJoCo Panda"
-
-    def __init__(self, arm: Any, limits: CommandLimits | None = None) -> None:
-        from vinetwin.servo.panda import FLANGE_OFFSET
-
-        self.arm = arm
-        T_fc = np.asarray(arm.T_flange_camera, float)
-        self._flange_offset = FLANGE_OFFSET
-        super().__init__(T_fc, limits)
-
-    def _pose(self) -> Array:
-        return self.arm.pose() @ invert(self.T_flange_camera)
-
-    def T_base_camera(self) -> Array:
-        return self.arm.pose()
-
-    def _apply(self, twist: Array, dt: float) -> None:
-        if np.any(twist):
-            self.arm.move(twist, dt)
 
 
 # ----------------------------------------------------------------------------- Franka

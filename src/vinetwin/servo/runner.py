@@ -2,13 +2,13 @@
 simulation or on hardware, through `loop.run_loop`.
 
 The pieces, by name (`RunnerConfig.camera` / `.robot`):
-- camera `realsense[:SERIAL]`, `bag:PATH`, `folder:PATH` (`servo.sources`), `sim` (the
-  simulator's D405, rendered from the twin's mesh in simulated time), or `render` (the D405
-  rendered in real time at the pose a real robot reports: the robot link without a camera);
-- robot `franka:HOST` (a Franka through franky-control), `sim` (a free-flying camera),
-  `mujoco` (the MuJoCo Panda; `robot_model` picks another Panda model), or `none` (no robot:
-  twists are computed and logged, and frames that carry a recorded robot pose give the
-  kinematic guess).
+- camera `realsense[:SERIAL]`, `bag:PATH`, `folder:PATH` (`capture.sources`), `render` (the
+  D405 rendered in real time at the pose a real robot reports: the robot link without a
+  camera, `servo.rendered_camera`), or `sim` (the simulator's D405 in simulated time, built by
+  `sim.rig.simulated_session`, which the caller passes as `simulator`);
+- robot `franka:HOST` (a Franka through franky-control), `none` (no robot: twists are computed
+  and logged, and frames that carry a recorded robot pose give the kinematic guess), or, with
+  the simulated camera, `sim` (a free-flying camera) and `mujoco` (the MuJoCo Panda).
 
 The reference is the twin's exported `references/POSE.ply` (rendered now, with the twin's
 settings, when it was never exported). On hardware the twin's `T_world_vine` is taken as the
@@ -21,54 +21,50 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from vinetwin._config import JsonFields
+from vinetwin.capture.sources import CameraSource
+from vinetwin.cloud import Cloud
 from vinetwin.errors import InputError
-from vinetwin.frames import invert, pose_error
-from vinetwin.servo.loop import Cycle, CycleLog, LoopConfig, LoopSummary, run_loop
-from vinetwin.servo.robot import CommandLimits, Robot
-from vinetwin.servo.sim import SimConfig
-from vinetwin.servo.sources import CameraSource
-from vinetwin.twin.model import Twin
+from vinetwin.frames import Array, invert, pose_error
+from vinetwin.servo.config import LoopConfig, RunnerConfig
+from vinetwin.servo.loop import Cycle, CycleLog, LoopSummary, run_loop
+from vinetwin.servo.robot import Robot
+from vinetwin.servo.step import Servo, make_servo
+from vinetwin.twin.model import PruningPose, Twin
 
 log = logging.getLogger(__name__)
 
-
-@dataclass(frozen=True, kw_only=True)
-class RunnerConfig(JsonFields):
-    pose: str = ""
-    """Pruning pose id (default: the twin's first)."""
-    camera: str = "sim"
-    robot: str = "sim"
-    robot_model: str = ""
-    """With robot mujoco: a Panda model folder or MJCF file (default: vinetwin's own)."""
-    servo: SimConfig = field(default_factory=SimConfig)
-    """ICP variant, gains, speed limits, guess mode; in simulation also the camera rate, the
-    registration error, the seed."""
-    limits: CommandLimits = field(default_factory=CommandLimits)
-    loop: LoopConfig = field(default_factory=LoopConfig)
-    start_translation: float = 0.04
-    """Simulation: the start's distance from the pruning pose (m)."""
-    start_rotation: float = 0.1
-    """Simulation: the start's angle from the pruning pose (rad)."""
-    width: int = 848
-    height: int = 480
-    fps: int = 30
-    color: bool = False
-    rate: float | None = None
-    """Playback pacing: frames per second for folder:, 0 for bag: as fast as possible."""
-    realtime: bool = True
-    """franka: demand a real-time kernel (libfranka's default); off for a simulated Franka."""
-    dynamics_factor: float = 0.2
-    """franka: fraction of the robot's velocity, acceleration and jerk limits."""
+__all__ = ["RunnerConfig", "Session", "hardware_session", "reference_cloud", "run_pose"]
 
 
-def _reference(twin: Twin, pose_id: str) -> Any:
+@dataclass
+class Session:
+    """What one servo run needs: the servo, a camera source, a robot (None: none), the loop's
+    settings, and where the goal is in the robot base (for the log)."""
+
+    servo: Servo
+    source: CameraSource
+    robot: Robot | None
+    loop: LoopConfig
+    T_base_goal: Array
+    true_error: Callable[[], list[float]] | None = None
+    """The true camera error now (simulation only), logged with each cycle."""
+    header: dict[str, Any] = field(default_factory=dict)
+
+    def close(self) -> None:
+        if self.robot is not None:
+            self.robot.close()
+        self.source.close()
+
+
+def reference_cloud(twin: Twin, pose_id: str) -> Cloud:
+    """The pose's exported reference cloud, or one rendered now with the twin's settings."""
     from vinetwin.render.reference import read_reference_cloud
 
     path = twin.references_dir / f"{pose_id}.ply"
@@ -92,24 +88,14 @@ def default_log_path(twin: Twin, pose_id: str) -> Path:
     return twin.root / "servo" / f"{pose_id}-{stamp}.jsonl"
 
 
-def run_pose(
-    twin: Twin,
-    cfg: RunnerConfig,
-    *,
-    log_path: str | Path | None = None,
-    record: str | Path | None = None,
-) -> tuple[LoopSummary, Path]:
-    """Servos to one pruning pose; returns the loop's summary and the log's path."""
-    from vinetwin.servo.sim import believed_goal, make_servo, start_pose
-
-    pose = twin.pose(cfg.pose) if cfg.pose else twin.poses[0]
-    goal = np.asarray(pose.T_vine_camera, float)
-    sim_camera = cfg.camera == "sim"
+def _check_combination(cfg: RunnerConfig) -> str:
+    """The robot kind, once camera and robot are known to fit together."""
     robot_kind, _, host = cfg.robot.partition(":")
     if robot_kind not in ("franka", "sim", "mujoco", "none") or (robot_kind == "franka") != bool(
         host
     ):
         raise InputError(f"unknown robot '{cfg.robot}'; choose franka:HOST, sim, mujoco or none")
+    sim_camera = cfg.camera == "sim"
     if sim_camera and robot_kind not in ("sim", "mujoco"):
         raise InputError("the simulated camera needs a simulated robot: --robot sim or mujoco")
     if cfg.camera == "render" and robot_kind != "franka":
@@ -119,11 +105,78 @@ def run_pose(
             f"a simulated robot cannot move the camera '{cfg.camera}': use --robot none (replay) "
             "or franka:HOST"
         )
+    return robot_kind
 
-    reference = _reference(twin, pose.id)
-    servo = make_servo(reference, twin.camera, twin.perception, cfg.servo)
-    rng = np.random.default_rng(cfg.servo.seed)
+
+def hardware_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Session:
+    """A live, recorded or rendered camera with a Franka or no robot."""
+    robot_kind, _, host = cfg.robot.partition(":")
+    servo = make_servo(
+        reference_cloud(twin, pose.id), twin.camera, twin.perception, cfg.servo,
+        cfg.limits.speeds(),
+    )  # fmt: skip
+    T_base_ref = twin.T_world_vine @ np.asarray(pose.T_vine_camera, float)
     robot: Robot | None = None
+    source: CameraSource | None = None
+    try:
+        if robot_kind == "franka":
+            from vinetwin.servo.robot import FrankaRobot, FrankyTransport
+
+            transport = FrankyTransport(host, cfg.dynamics_factor, cfg.realtime)
+            robot = FrankaRobot(transport, twin.T_flange_camera, cfg.limits)
+            servo.reset(invert(T_base_ref) @ robot.T_base_camera())
+        if cfg.camera == "render":
+            from vinetwin.render.backends import get_backend
+            from vinetwin.servo.rendered_camera import RenderedCameraSource
+
+            mesh = twin.load_mesh()
+            backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
+            source = RenderedCameraSource(
+                backend, robot, twin.T_world_vine, fps=cfg.fps, seed=cfg.seed
+            )
+        else:
+            from vinetwin.capture.sources import open_source
+
+            source = open_source(
+                cfg.camera, camera=twin.camera, width=cfg.width, height=cfg.height,
+                fps=cfg.fps, color=cfg.color, rate=cfg.rate,
+            )  # fmt: skip
+        if robot is None:  # replay: the first frame's recorded pose gives the guess
+            first = getattr(source, "capture", None)
+            T0 = first.frames[0].T_base_camera if first is not None else None
+            if T0 is not None:
+                servo.reset(invert(T_base_ref) @ T0)
+        _check_camera(twin, source)
+    except BaseException:
+        if robot is not None:
+            robot.close()
+        if source is not None:
+            source.close()
+        raise
+    return Session(servo, source, robot, cfg.loop, T_base_ref)
+
+
+def run_pose(
+    twin: Twin,
+    cfg: RunnerConfig,
+    *,
+    log_path: str | Path | None = None,
+    record: str | Path | None = None,
+    simulator: Callable[[Twin, PruningPose, RunnerConfig], Session] | None = None,
+) -> tuple[LoopSummary, Path]:
+    """Servos to one pruning pose; returns the loop's summary and the log's path. The simulated
+    camera (`cfg.camera == "sim"`) needs `simulator`: `vinetwin.sim.rig.simulated_session`."""
+    pose = twin.pose(cfg.pose) if cfg.pose else twin.poses[0]
+    robot_kind = _check_combination(cfg)
+    if cfg.camera == "sim":
+        if simulator is None:
+            raise InputError(
+                "the simulated camera needs the simulator: pass "
+                "simulator=vinetwin.sim.rig.simulated_session"
+            )
+        session = simulator(twin, pose, cfg)
+    else:
+        session = hardware_session(twin, pose, cfg)
     header: dict[str, Any] = {
         "twin": str(twin.root),
         "pose": pose.id,
@@ -133,101 +186,32 @@ def run_pose(
         "dry_run": cfg.loop.dry_run or robot_kind == "none",
         "config": cfg.to_dict(),
         "T_flange_camera": twin.T_flange_camera.tolist(),
+        "T_base_goal": np.asarray(session.T_base_goal).tolist(),
+        "source": session.source.description,
+        **session.header,
     }
     writer = None
-    source: CameraSource | None = None
     try:
-        if sim_camera:
-            from vinetwin.render.backends import get_backend
-            from vinetwin.servo.robot import KinematicRobot, MujocoRobot
-            from vinetwin.servo.sim import SimCameraSource
-
-            mesh = twin.load_mesh()
-            backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
-            cut = twin.cut_point(pose.cut_point).point
-            start = start_pose(
-                goal, cut, cfg.start_translation, cfg.start_rotation, rng, twin.camera,
-                twin.perception.max_depth,
-            )  # fmt: skip
-            servo.reset(invert(believed_goal(goal, cfg.servo, rng)) @ start)
-            if robot_kind == "sim":
-                T_base_vine = np.eye(4)
-                robot = KinematicRobot(start, twin.T_flange_camera, cfg.limits)
-            else:
-                from vinetwin.servo.panda import PandaArm, goal_placement
-
-                T_base_vine = goal_placement(goal)
-                arm = PandaArm(
-                    cfg.robot_model or None, T_flange_camera=twin.T_flange_camera,
-                    camera=twin.camera, vine=(mesh.vertices, mesh.faces), T_base_vine=T_base_vine,
-                )  # fmt: skip
-                ok, dt_, _ = arm.reach(T_base_vine @ start)
-                if not ok:
-                    raise InputError(
-                        f"the arm cannot reach the start pose ({1000 * dt_:.1f} mm short)"
-                    )
-                robot = MujocoRobot(arm, cfg.limits)
-            source = SimCameraSource(
-                backend, robot, T_base_vine, rng, camera_rate=cfg.servo.camera_rate,
-                fixed_period=cfg.servo.fixed_period,
-            )  # fmt: skip
-            loop_cfg = replace(cfg.loop, max_cycle=0.0)
-            header["T_base_goal"] = (T_base_vine @ goal).tolist()
-        else:
-            from vinetwin.servo.sources import open_source
-
-            loop_cfg = cfg.loop
-            T_base_ref = twin.T_world_vine @ goal
-            header["T_base_goal"] = T_base_ref.tolist()
-            if robot_kind == "franka":
-                from vinetwin.servo.robot import FrankaRobot, FrankyTransport
-
-                transport = FrankyTransport(host, cfg.dynamics_factor, cfg.realtime)
-                robot = FrankaRobot(transport, twin.T_flange_camera, cfg.limits)
-                servo.reset(invert(T_base_ref) @ robot.T_base_camera())
-            if cfg.camera == "render":
-                from vinetwin.render.backends import get_backend
-                from vinetwin.servo.sim import RenderedCameraSource
-
-                mesh = twin.load_mesh()
-                backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
-                source = RenderedCameraSource(
-                    backend, robot, twin.T_world_vine, fps=cfg.fps, seed=cfg.servo.seed
-                )
-            else:
-                source = open_source(
-                    cfg.camera, camera=twin.camera, width=cfg.width, height=cfg.height,
-                    fps=cfg.fps, color=cfg.color, rate=cfg.rate,
-                )  # fmt: skip
-            if robot is None:  # replay: the first frame's recorded pose gives the guess
-                first = getattr(source, "capture", None)
-                T0 = first.frames[0].T_base_camera if first is not None else None
-                if T0 is not None:
-                    servo.reset(invert(T_base_ref) @ T0)
-            _check_camera(twin, source)
-        header["source"] = source.description
         if record is not None:
-            from vinetwin.reconstruct.capture import CaptureWriter
+            from vinetwin.capture.folder import CaptureWriter
 
             writer = CaptureWriter(
-                record, source.camera, source.depth_unit,
+                record, session.source.camera, session.source.depth_unit,
                 extra={"provenance": {"servo": header}, "T_flange_camera": header["T_flange_camera"]},
             )  # fmt: skip
         path = Path(log_path) if log_path else default_log_path(twin, pose.id)
         cycle_log = CycleLog(path, **header)
-        truth = getattr(source, "T_rel", None) is not None
+        truth = session.true_error
 
         def on_cycle(c: Cycle) -> dict[str, Any] | None:
             if writer is not None:
                 writer.add(c.frame.counts, c.frame.color, c.T_base_camera, c.frame.stamp)
-            if truth:
-                return {"true_error": list(pose_error(source.T_rel, goal))}  # type: ignore[attr-defined]
-            return None
+            return {"true_error": truth()} if truth is not None else None
 
         try:
             summary = run_loop(
-                servo, source, robot if robot_kind != "none" else None, loop_cfg,
-                log=cycle_log, on_cycle=on_cycle,
+                session.servo, session.source, session.robot if robot_kind != "none" else None,
+                session.loop, log=cycle_log, on_cycle=on_cycle,
             )  # fmt: skip
         finally:
             cycle_log.close()
@@ -235,10 +219,13 @@ def run_pose(
     finally:
         if writer is not None:
             writer.close()
-        if robot is not None:
-            robot.close()
-        if source is not None:
-            source.close()
+        session.close()
+
+
+def true_error_of(source: Any, goal: Array) -> Callable[[], list[float]]:
+    """The true error of a simulated camera (its `T_rel`, the camera relative to the possibly
+    moved vine) against `goal`."""
+    return lambda: list(pose_error(source.T_rel, goal))
 
 
 def _check_camera(twin: Twin, source: CameraSource) -> None:

@@ -29,48 +29,12 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin._config import JsonFields
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.frames import Array, check_pose, invert, pose_error, se3_exp
-from vinetwin.servo.icp import ICP, ICPConfig, ICPResult
-from vinetwin.servo.pbvs import Gain, Limits, kinematic_guess, pbvs_error, pbvs_twist
-
-#: Where each frame's ICP starts (see `Servo`).
-GUESSES = ("kinematic", "previous", "identity")
-
-
-@dataclass(frozen=True, kw_only=True)
-class SafetyConfig(JsonFields):
-    """When an alignment is trusted enough to move the arm."""
-
-    min_overlap: float = 0.3
-    """Smallest share of the smaller cloud (frame or reference) paired (`ICPResult.overlap`)."""
-    min_correspondences: int = 60
-    """Fewest pairs."""
-    max_rmse: float = 0.003
-    """Largest inlier RMSE (m)."""
-    max_jump_translation: float = 0.01
-    """Largest distance (m) between the estimate and its prediction. Without robot kinematics
-    the distance the camera may have covered at `Limits.max_linear` since the last trusted frame
-    is added."""
-    max_jump_rotation: float = 0.05
-    """Largest angle (rad) between the estimate and its prediction (same allowance)."""
-    max_frame_age: float = 0.1
-    """A frame older than this (s) when `step` is called with `now` is stale."""
-    reacquire_frames: int = 5
-    """A pose jump seen consistently in this many consecutive frames (estimates within
-    `reacquire_translation` / `reacquire_rotation` of each other) is accepted as the scene having
-    moved; 0: never."""
-    reacquire_translation: float = 0.002
-    """m."""
-    reacquire_rotation: float = 0.01
-    """rad."""
-    max_linear_acceleration: float = 0.5
-    """Ramp (m/s^2) on the increase of the commanded linear speed; 0 disables it. Stops are
-    never ramped."""
-    max_angular_acceleration: float = 2.5
-    """Ramp (rad/s^2) on the increase of the commanded angular speed; 0 disables it."""
+from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
+from vinetwin.servo.config import GUESSES, Limits, SafetyConfig, ServoConfig
+from vinetwin.servo.pbvs import Gain, kinematic_guess, pbvs_error, pbvs_twist
 
 
 @dataclass
@@ -271,7 +235,7 @@ class Servo:
 
     def _ramp(self, twist: Array, stamp: float) -> Array:
         """Limits how fast the commanded speeds grow (from the last commanded twist)."""
-        s = self.safety
+        s = self.limits
         dt = stamp - self._twist_stamp
         if not math.isfinite(dt) or dt <= 0:
             dt = 0.0
@@ -296,3 +260,29 @@ class Servo:
         if not keep_stamp and math.isfinite(stamp):
             self._twist_stamp = max(self._twist_stamp, stamp)
         return StepResult(np.zeros(6), False, reason)
+
+
+def make_servo(
+    reference: Cloud,
+    camera: CameraModel,
+    perception: PerceptionConfig,
+    config: ServoConfig,
+    limits: Limits | None = None,
+    safety: SafetyConfig | None = None,
+) -> Servo:
+    """The servo a `ServoConfig` describes, for a twin's camera and perception settings: the one
+    the simulation, `vinetwin servo` and the web app build."""
+    from vinetwin.registration.icp import ICPConfig
+
+    return Servo(
+        reference,
+        icp=ICPConfig(variant=config.variant),
+        gain=Gain(l0=config.gain, l_inf=config.gain_far, adaptive=True),
+        limits=limits or Limits(),
+        safety=safety,
+        camera=camera,
+        perception=perception,
+        goal_translation=config.converged_translation,
+        goal_rotation=config.converged_rotation,
+        guess=config.guess,
+    )

@@ -18,16 +18,10 @@ so a crash during a save leaves the previous file intact.
 
 from __future__ import annotations
 
-import contextlib
 import datetime as _dt
-import functools
 import json
 import math
-import os
 import re
-import socket
-import tempfile
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,18 +30,18 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 import vinetwin
-from vinetwin._faults import fault_point
 from vinetwin.camera import CameraModel, d405
 from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
 from vinetwin.errors import (
     CameraError,
     InputError,
-    MeshError,
     TwinError,
     TwinFieldError,
     TwinVersionError,
 )
+from vinetwin.files import atomic_write_bytes, atomic_write_text, remove_orphan_temp_files
 from vinetwin.frames import Array, check_pose, make_pose
+from vinetwin.mesh import check_mesh_arrays, load_mesh, mesh_ply_bytes
 from vinetwin.twin.poses import Approach, approach_of, default_approach, pruning_pose
 from vinetwin.twin.skeleton import Skeleton
 
@@ -64,72 +58,92 @@ _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 DEFAULT_T_FLANGE_CAMERA: Array = make_pose(np.eye(3), [0.05, 0.0, 0.04])
 
 
-#: Temporary files of `atomic_write_bytes`: `.NAME.HOST-PID.RANDOM.tmp`.
-_TEMP_RE = re.compile(r"^\..+\.(?P<host>[A-Za-z0-9-]+)-(?P<pid>[0-9]+)\.[^.]+\.tmp$")
-#: A temporary file this old is an orphan whoever wrote it (a write takes well under a second).
-ORPHAN_AGE_S = 3600.0
+# ----------------------------------------------------------------------------- validation
+class _Fields:
+    """Typed getters over parsed JSON that raise TwinFieldError naming the field path."""
 
+    def __init__(self, path: Path) -> None:
+        self.path = str(path)
 
-@functools.cache
-def _host_tag() -> str:
-    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:40] or "host"
+    def fail(self, where: str, message: str) -> TwinFieldError:
+        return TwinFieldError(self.path, where, message)
 
+    def obj(self, data: Any, where: str) -> dict[str, Any]:
+        if not isinstance(data, dict):
+            raise self.fail(where, f"must be an object, got {type(data).__name__}")
+        return data
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Writes `data` to `path` through a flushed temporary file and a rename."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{path.name}.{_host_tag()}-{os.getpid()}.", suffix=".tmp", dir=path.parent
-    )
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        fault_point(str(path), "write")  # tests: a writer killed before the rename
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    def req(self, data: dict[str, Any], key: str, where: str) -> Any:
+        if key not in data:
+            raise self.fail(f"{where}{key}", "is missing")
+        return data[key]
 
+    def string(self, data: dict[str, Any], key: str, where: str, default: str | None = None) -> str:
+        if default is not None and key not in data:
+            return default
+        v = self.req(data, key, where)
+        if not isinstance(v, str):
+            raise self.fail(f"{where}{key}", f"must be a string, got {v!r}")
+        return v
 
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
+    def ident(self, data: dict[str, Any], where: str) -> str:
+        """The entry's `id`: a name that is safe as a file name."""
+        v = self.string(data, "id", where)
+        if not _ID_RE.match(v):
+            raise self.fail(f"{where}id", f"must match [A-Za-z0-9_-]{{1,64}}, got {v!r}")
+        return v
 
+    def number(
+        self, data: dict[str, Any], key: str, where: str, default: float | None = None
+    ) -> float:
+        if default is not None and key not in data:
+            return default
+        v = self.req(data, key, where)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise self.fail(f"{where}{key}", f"must be a finite number, got {v!r}")
+        return float(v)
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)  # signal 0: only asks whether the process exists
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # it exists, under another user
-        pass
-    return True
+    def seq(self, data: dict[str, Any], key: str) -> list[Any]:
+        v = self.req(data, key, "")
+        if not isinstance(v, list):
+            raise self.fail(key, "must be a list")
+        return v
 
+    def unique(self, ids: list[str], where: str) -> None:
+        seen: set[str] = set()
+        for i, v in enumerate(ids):
+            if v in seen:
+                raise self.fail(f"{where}[{i}].id", f"must be unique, got {v!r} twice")
+            seen.add(v)
 
-def remove_orphan_temp_files(folder: Path) -> list[Path]:
-    """Removes the temporary files that writers killed in the middle of `atomic_write_bytes`
-    left in `folder` (a worker killed by the OOM killer, or terminated by a pool that broke
-    while it was writing): those written on this machine by a process that is gone, and any
-    older than `ORPHAN_AGE_S`. Files being written by a live process are kept. Returns what
-    was removed."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        return []
-    host, now, removed = _host_tag(), time.time(), []
-    for p in folder.glob(".*.tmp"):
-        m = _TEMP_RE.match(p.name)
+    def vec3(self, data: dict[str, Any], key: str, where: str, unit: bool = False) -> Array:
+        v = self.req(data, key, where)
+        arr = self._numbers(v, f"{where}{key}", (3,))
+        if unit:
+            n = float(np.linalg.norm(arr))
+            if n < 1e-9:
+                raise self.fail(f"{where}{key}", "must be a non-zero direction")
+            arr = arr / n
+        return arr
+
+    def pose(self, data: dict[str, Any], key: str, where: str) -> Array:
+        v = self.req(data, key, where)
+        arr = self._numbers(v, f"{where}{key}", (4, 4))
         try:
-            old = now - p.stat().st_mtime > ORPHAN_AGE_S
-        except OSError:
-            continue
-        dead = m is not None and m["host"] == host and not _pid_alive(int(m["pid"]))
-        if old or dead:
-            with contextlib.suppress(OSError):
-                p.unlink()
-                removed.append(p)
-    return removed
+            return check_pose(arr, f"{where}{key}", atol=1e-5)
+        except InputError as exc:
+            raise self.fail(f"{where}{key}", str(exc).split(" ", 1)[1]) from exc
+
+    def _numbers(self, v: Any, where: str, shape: tuple[int, ...]) -> Array:
+        try:
+            arr = np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise self.fail(where, f"must be numbers of shape {shape}, got {v!r:.80}") from exc
+        if arr.shape != shape:
+            raise self.fail(where, f"must have shape {shape}, got {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise self.fail(where, f"holds a non-finite value (NaN or inf): {arr.tolist()}")
+        return arr
 
 
 # ----------------------------------------------------------------------------- entities
@@ -154,6 +168,22 @@ class CutPoint:
             "cane_axis": [float(v) for v in self.cane_axis],
             "source": self.source,
         }
+
+    @classmethod
+    def from_json(cls, data: Any, f: _Fields, where: str) -> CutPoint:
+        """One entry of twin.json's `cut_points` (`where`: its field path, e.g. "cut_points[2]");
+        unknown keys are kept in `extra`."""
+        w = f"{where}."
+        c = f.obj(data, where)
+        known = {"id", "name", "point", "cane_axis", "source"}
+        return cls(
+            id=f.ident(c, w),
+            point=f.vec3(c, "point", w),
+            cane_axis=f.vec3(c, "cane_axis", w, unit=True),
+            name=f.string(c, "name", w, default=""),
+            source=f.string(c, "source", w, default="manual"),
+            extra={k: v for k, v in c.items() if k not in known},
+        )
 
 
 @dataclass
@@ -185,73 +215,38 @@ class PruningPose:
             },
         }
 
-
-# ----------------------------------------------------------------------------- validation
-class _Fields:
-    """Typed getters over parsed JSON that raise TwinFieldError naming the field path."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = str(path)
-
-    def fail(self, where: str, message: str) -> TwinFieldError:
-        return TwinFieldError(self.path, where, message)
-
-    def obj(self, data: Any, where: str) -> dict[str, Any]:
-        if not isinstance(data, dict):
-            raise self.fail(where, f"must be an object, got {type(data).__name__}")
-        return data
-
-    def req(self, data: dict[str, Any], key: str, where: str) -> Any:
-        if key not in data:
-            raise self.fail(f"{where}{key}", "is missing")
-        return data[key]
-
-    def string(self, data: dict[str, Any], key: str, where: str, default: str | None = None) -> str:
-        if default is not None and key not in data:
-            return default
-        v = self.req(data, key, where)
-        if not isinstance(v, str):
-            raise self.fail(f"{where}{key}", f"must be a string, got {v!r}")
-        return v
-
-    def number(
-        self, data: dict[str, Any], key: str, where: str, default: float | None = None
-    ) -> float:
-        if default is not None and key not in data:
-            return default
-        v = self.req(data, key, where)
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise self.fail(f"{where}{key}", f"must be a finite number, got {v!r}")
-        return float(v)
-
-    def vec3(self, data: dict[str, Any], key: str, where: str, unit: bool = False) -> Array:
-        v = self.req(data, key, where)
-        arr = self._numbers(v, f"{where}{key}", (3,))
-        if unit:
-            n = float(np.linalg.norm(arr))
-            if n < 1e-9:
-                raise self.fail(f"{where}{key}", "must be a non-zero direction")
-            arr = arr / n
-        return arr
-
-    def pose(self, data: dict[str, Any], key: str, where: str) -> Array:
-        v = self.req(data, key, where)
-        arr = self._numbers(v, f"{where}{key}", (4, 4))
-        try:
-            return check_pose(arr, f"{where}{key}", atol=1e-5)
-        except InputError as exc:
-            raise self.fail(f"{where}{key}", str(exc).split(" ", 1)[1]) from exc
-
-    def _numbers(self, v: Any, where: str, shape: tuple[int, ...]) -> Array:
-        try:
-            arr = np.asarray(v, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise self.fail(where, f"must be numbers of shape {shape}, got {v!r:.80}") from exc
-        if arr.shape != shape:
-            raise self.fail(where, f"must have shape {shape}, got {arr.shape}")
-        if not np.all(np.isfinite(arr)):
-            raise self.fail(where, f"holds a non-finite value (NaN or inf): {arr.tolist()}")
-        return arr
+    @classmethod
+    def from_json(cls, data: Any, f: _Fields, where: str) -> PruningPose:
+        """One entry of twin.json's `pruning_poses` (its cut point is checked by the twin)."""
+        w = f"{where}."
+        p = f.obj(data, where)
+        variant = f.string(p, "icp_variant", w, default="point_to_plane")
+        if variant not in ICP_VARIANTS:
+            raise f.fail(
+                f"{w}icp_variant",
+                f"unknown ICP variant {variant!r}; choose one of: {', '.join(ICP_VARIANTS)}",
+            )
+        standoff = f.number(p, "standoff", w)
+        if standoff <= 0:
+            raise f.fail(f"{w}standoff", f"must be > 0 m, got {standoff}")
+        ap = f.obj(p.get("approach", {}), f"{w}approach")
+        a = f"{w}approach."
+        known = {"id", "name", "cut_point", "T_vine_camera", "standoff", "icp_variant", "approach"}
+        return cls(
+            id=f.ident(p, w),
+            cut_point=f.string(p, "cut_point", w),
+            T_vine_camera=f.pose(p, "T_vine_camera", w),
+            standoff=standoff,
+            icp_variant=variant,
+            name=f.string(p, "name", w, default=""),
+            approach=Approach(
+                standoff=standoff,
+                azimuth=f.number(ap, "azimuth", a, default=math.pi / 2),
+                elevation=f.number(ap, "elevation", a, default=0.0),
+                roll=f.number(ap, "roll", a, default=0.0),
+            ),
+            extra={k: v for k, v in p.items() if k not in known},
+        )
 
 
 _TOP_KEYS = {
@@ -346,16 +341,7 @@ class Twin:
 
     def write_mesh(self, vertices: Array, faces: np.ndarray) -> None:
         """Writes the mesh as binary PLY (float32 vertices, metres), atomically."""
-        import trimesh
-
-        check_mesh_arrays(vertices, faces, str(self.mesh_path))
-        mesh = trimesh.Trimesh(vertices.astype(np.float32), faces, process=False)
-        data = mesh.export(file_type="ply", encoding="binary")
-        if not isinstance(data, bytes):
-            raise MeshError(
-                f"{self.mesh_path}: trimesh returned {type(data).__name__}, not PLY bytes"
-            )
-        atomic_write_bytes(self.mesh_path, data)
+        atomic_write_bytes(self.mesh_path, mesh_ply_bytes(vertices, faces, str(self.mesh_path)))
 
     # ------------------------------------------------------------------ load / save
     @classmethod
@@ -431,84 +417,22 @@ class Twin:
                 if val < 0:
                     raise f.fail(f"perception.{key}", f"must be >= 0, got {val}")
 
-        cut_points: list[CutPoint] = []
-        ids: set[str] = set()
-        raw_cuts = f.req(data, "cut_points", "")
-        if not isinstance(raw_cuts, list):
-            raise f.fail("cut_points", "must be a list")
-        for i, c in enumerate(raw_cuts):
-            w = f"cut_points[{i}]."
-            c = f.obj(c, w[:-1])
-            cid = f.string(c, "id", w)
-            if not _ID_RE.match(cid) or cid in ids:
+        cut_points = [
+            CutPoint.from_json(c, f, f"cut_points[{i}]")
+            for i, c in enumerate(f.seq(data, "cut_points"))
+        ]
+        poses = [
+            PruningPose.from_json(p, f, f"pruning_poses[{i}]")
+            for i, p in enumerate(f.seq(data, "pruning_poses"))
+        ]
+        f.unique([c.id for c in cut_points], "cut_points")
+        f.unique([p.id for p in poses], "pruning_poses")
+        cut_ids = {c.id for c in cut_points}
+        for i, p in enumerate(poses):
+            if p.cut_point not in cut_ids:
                 raise f.fail(
-                    f"{w}id", f"must be unique and match [A-Za-z0-9_-]{{1,64}}, got {cid!r}"
+                    f"pruning_poses[{i}].cut_point", f"names no cut point: {p.cut_point!r}"
                 )
-            ids.add(cid)
-            known = {"id", "name", "point", "cane_axis", "source"}
-            cut_points.append(
-                CutPoint(
-                    id=cid,
-                    point=f.vec3(c, "point", w),
-                    cane_axis=f.vec3(c, "cane_axis", w, unit=True),
-                    name=f.string(c, "name", w, default=""),
-                    source=f.string(c, "source", w, default="manual"),
-                    extra={k: v for k, v in c.items() if k not in known},
-                )
-            )
-        poses: list[PruningPose] = []
-        raw_poses = f.req(data, "pruning_poses", "")
-        if not isinstance(raw_poses, list):
-            raise f.fail("pruning_poses", "must be a list")
-        pose_ids: set[str] = set()
-        for i, p in enumerate(raw_poses):
-            w = f"pruning_poses[{i}]."
-            p = f.obj(p, w[:-1])
-            pid = f.string(p, "id", w)
-            if not _ID_RE.match(pid) or pid in pose_ids:
-                raise f.fail(
-                    f"{w}id", f"must be unique and match [A-Za-z0-9_-]{{1,64}}, got {pid!r}"
-                )
-            pose_ids.add(pid)
-            cut = f.string(p, "cut_point", w)
-            if cut not in ids:
-                raise f.fail(f"{w}cut_point", f"names no cut point: {cut!r}")
-            variant = f.string(p, "icp_variant", w, default="point_to_plane")
-            if variant not in ICP_VARIANTS:
-                raise f.fail(
-                    f"{w}icp_variant",
-                    f"unknown ICP variant {variant!r}; choose one of: {', '.join(ICP_VARIANTS)}",
-                )
-            standoff = f.number(p, "standoff", w)
-            if standoff <= 0:
-                raise f.fail(f"{w}standoff", f"must be > 0 m, got {standoff}")
-            ap_data = f.obj(p.get("approach", {}), f"{w}approach")
-            known = {
-                "id",
-                "name",
-                "cut_point",
-                "T_vine_camera",
-                "standoff",
-                "icp_variant",
-                "approach",
-            }
-            poses.append(
-                PruningPose(
-                    id=pid,
-                    cut_point=cut,
-                    T_vine_camera=f.pose(p, "T_vine_camera", w),
-                    standoff=standoff,
-                    icp_variant=variant,
-                    name=f.string(p, "name", w, default=""),
-                    approach=Approach(
-                        standoff=standoff,
-                        azimuth=f.number(ap_data, "azimuth", f"{w}approach.", default=math.pi / 2),
-                        elevation=f.number(ap_data, "elevation", f"{w}approach.", default=0.0),
-                        roll=f.number(ap_data, "roll", f"{w}approach.", default=0.0),
-                    ),
-                    extra={k: v for k, v in p.items() if k not in known},
-                )
-            )
         prov = data.get("provenance", {})
         if not isinstance(prov, dict):
             raise f.fail("provenance", "must be an object")
@@ -681,41 +605,6 @@ def find_twins(path: str | Path) -> list[Path]:
     return found
 
 
-def check_mesh_arrays(V: Any, F: Any, where: str) -> None:
-    """Raises MeshError naming the problem: bad shapes, no faces, non-finite vertices, faces
-    indexing missing vertices."""
-    V = np.asarray(V)
-    F = np.asarray(F)
-    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
-        raise MeshError(f"{where}: mesh vertices must have shape (V, 3) with V > 0, got {V.shape}")
-    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
-        raise MeshError(f"{where}: mesh has no triangle faces (faces shape {F.shape})")
-    if not np.all(np.isfinite(V)):
-        raise MeshError(
-            f"{where}: mesh has {int((~np.isfinite(V)).any(1).sum())} non-finite vertices"
-        )
-    if F.min() < 0 or F.max() >= len(V):
-        raise MeshError(f"{where}: mesh faces index vertices out of range 0..{len(V) - 1}")
-
-
-def load_mesh(path: str | Path) -> trimesh.Trimesh:
-    """Reads a triangle mesh (PLY, OBJ, STL, GLB...) and checks it; raises MeshError naming the
-    problem (missing, unreadable, no faces, non-finite vertices)."""
-    import trimesh
-
-    path = Path(path)
-    if not path.exists():
-        raise MeshError(f"{path}: mesh file does not exist")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types on corrupt input
-        raise MeshError(f"{path}: cannot read mesh: {type(exc).__name__}: {exc}") from exc
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise MeshError(f"{path}: not a triangle mesh")
-    check_mesh_arrays(mesh.vertices, mesh.faces, str(path))
-    return mesh
-
-
 def twin_from_skeleton(
     root: str | Path,
     skeleton: Skeleton,
@@ -748,3 +637,31 @@ def twin_from_skeleton(
             twin.add_pose(cut.id)
         twin.save()
     return twin
+
+
+def bundled_sample() -> Path:
+    """The bundled sample twin: `samples/vine_bilateral.twin` of the source checkout."""
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        cand = parent / "samples" / "vine_bilateral.twin"
+        if (cand / TWIN_FILE).exists():
+            return cand
+    raise TwinError(
+        "the bundled sample twin was not found (it ships in the source checkout under samples/); "
+        "make one with: vinetwin sample --out vine.twin"
+    )
+
+
+def copy_bundled_sample(folder: str | Path, replace: bool = False) -> Path:
+    """A copy of the bundled sample twin in `folder` (the sample itself is never modified): the
+    copy already there unless `replace`. Returns the copy's path."""
+    import shutil
+
+    src = bundled_sample()
+    dst = Path(folder) / src.name
+    if dst.exists() and replace:
+        shutil.rmtree(dst)
+    if not dst.exists():
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        shutil.copytree(src, dst)
+    return dst

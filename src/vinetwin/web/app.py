@@ -17,7 +17,7 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -374,8 +374,13 @@ class App:
 
     def _validate(self) -> None:
         """One closed-loop run to the selected pose (kinematic simulation, the pose's ICP
-        variant) from 5 cm / 0.15 rad away; draws the camera path and reports the outcome."""
-        from vinetwin.servo.sim import SimConfig, simulate, start_pose
+        variant, the library's default settings) from the campaign's quick start; draws the
+        camera path and reports the outcome."""
+        from vinetwin.servo.config import Variant
+        from vinetwin.sim.config import SimConfig
+        from vinetwin.sim.paper import PRESETS
+        from vinetwin.sim.rig import start_pose
+        from vinetwin.sim.simulate import simulate
 
         with self.lock:
             sess = self.session
@@ -389,8 +394,9 @@ class App:
             self.validation.content = f"simulating the servo to {pose.name}..."
             backend = sess.renderer()
         rng = np.random.default_rng(0)
-        start = start_pose(goal, cut, 0.05, 0.15, rng, twin.camera, twin.perception.max_depth)
-        cfg = SimConfig(variant=pose.icp_variant, duration=15.0)
+        far_t, far_r = PRESETS["quick"][0]
+        start = start_pose(goal, cut, far_t, far_r, rng, twin.camera, twin.perception.max_depth)
+        cfg = SimConfig(variant=cast(Variant, pose.icp_variant))
         try:
             run = simulate(backend, goal, start, 0, twin.perception, cfg)
         except VinetwinError as exc:
@@ -406,7 +412,8 @@ class App:
         verdict = "converged" if sm["converged"] else "did not converge"
         ct = sm["convergence_time"]
         self.validation.content = (
-            f"{pose.name} ({pose.icp_variant}) from 5 cm / 0.15 rad: **{verdict}**, final error "
+            f"{pose.name} ({pose.icp_variant}) from {100 * far_t:.0f} cm / {far_r:.2f} rad: "
+            f"**{verdict}**, final error "
             f"{1000 * sm['final_translation']:.2f} mm / {sm['final_rotation']:.4f} rad"
             + (f" in {ct:.1f} s" if ct is not None else "")
             + f", {sm['refused']} frames refused."
@@ -418,3 +425,14 @@ def serve(root: str | Path, host: str = "127.0.0.1", port: int = 8080) -> App:
     app = App(root, host, port)
     log.info("vinetwin web on http://%s:%d  (twin %s)", host, port, root)
     return app
+
+
+def serve_folder(root: str | Path | None, host: str = "127.0.0.1", port: int = 8080) -> App:
+    """`vinetwin web`: serves the twin at `root`, or, without one, a copy of the bundled sample
+    in out/web (made once, then edited in place)."""
+    if root is None:
+        from vinetwin.twin.model import copy_bundled_sample
+
+        root = copy_bundled_sample(Path("out") / "web")
+        log.info("no twin given: editing a copy of the bundled sample in %s", root)
+    return serve(root, host, port)

@@ -115,7 +115,7 @@ class FolderSource(CameraSource):
     stamps (or frame index / 30 s)."""
 
     def __init__(self, path: str | Path, rate: float | None = None) -> None:
-        from vinetwin.reconstruct.capture import read_capture
+        from vinetwin.capture.folder import read_capture
 
         self.capture = read_capture(path, check_frames=False)
         self.camera = self.capture.camera

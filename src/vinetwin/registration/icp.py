@@ -9,7 +9,7 @@
 
 The reference never changes during a servo: `ICP(reference_cloud, config)` builds its
 k-d trees (one per voxel size of its levels) once; `align(current_cloud, T_init)` runs per frame, each
-level in one compiled call (`vinetwin.servo._icp_kernels`). A registration runs through levels,
+level in one compiled call (`vinetwin.registration._kernels`). A registration runs through levels,
 coarse to fine: each level is (voxel size, maximum correspondence distance). The default shrinks
 the distance at full resolution (3 cm, 1 cm, then `max_correspondence_distance`): a wide first
 reach pulls a warm start in, a tight last one keeps the partial overlap of two views (canes
@@ -34,8 +34,8 @@ from vinetwin.camera import CameraModel
 from vinetwin.cloud import ICP_VARIANTS, Cloud, voxel_downsample
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, pose_error
-from vinetwin.servo import _icp_kernels as K
-from vinetwin.servo._icp_kernels import NNTree
+from vinetwin.registration import _kernels as K
+from vinetwin.registration._kernels import NNTree
 
 NDF = npt.NDArray[np.float64]
 

@@ -27,8 +27,8 @@ import numpy.typing as npt
 
 from vinetwin.camera import CameraModel
 from vinetwin.errors import InputError
+from vinetwin.files import atomic_write_text
 from vinetwin.frames import Array, check_pose
-from vinetwin.twin.model import atomic_write_text
 
 CAPTURE_FORMAT = "vinetwin-capture"
 CAPTURE_VERSION = 1

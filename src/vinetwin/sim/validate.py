@@ -16,8 +16,6 @@ each pruning pose's `validation` field, and drawn as a servo-ability map
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,45 +23,18 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin._config import JsonFields, json_default
 from vinetwin._faults import fault_point
-from vinetwin.cloud import ICP_VARIANTS
-from vinetwin.errors import InputError
 from vinetwin.executor import ExecutorConfig
-from vinetwin.render.reference import file_sha256, pose_seed
-from vinetwin.servo import campaign
-from vinetwin.servo.sim import SimConfig, simulate, start_pose
-from vinetwin.twin.model import Twin, atomic_write_text, remove_orphan_temp_files
+from vinetwin.files import atomic_write_json, atomic_write_text, file_sha256, json_sha256
+from vinetwin.jobstore import JobStore
+from vinetwin.render.reference import pose_seed
+from vinetwin.sim.config import SimConfig, ValidateConfig
+from vinetwin.sim.rig import start_pose
+from vinetwin.sim.simulate import simulate
+from vinetwin.sim.workers import run_jobs, twin_context, worker_backend
+from vinetwin.twin.model import Twin
 
 VALIDATION_FORMAT = 1
-
-
-@dataclass(frozen=True, kw_only=True)
-class ValidateConfig(JsonFields):
-    variants: tuple[str, ...] = ICP_VARIANTS
-    poses: tuple[str, ...] = ()
-    """Pose ids (default: all)."""
-    starts: int = 6
-    """Runs per pose and variant."""
-    radius_translation: float = 0.10
-    """Farthest start (m)."""
-    radius_rotation: float = 0.30
-    """Farthest start (rad)."""
-    duration: float = 20.0
-    """Longest simulated time per run (s)."""
-    seed: int = 0
-    workers: int = 0
-    force: bool = False
-    """Run again what is already validated with the same inputs."""
-
-    def __post_init__(self) -> None:
-        for v in self.variants:
-            if v not in ICP_VARIANTS:
-                raise InputError(
-                    f"unknown ICP variant '{v}'; choose from: {', '.join(ICP_VARIANTS)}"
-                )
-        if self.starts < 1 or self.radius_translation < 0 or self.radius_rotation < 0:
-            raise InputError("starts must be >= 1 and the radii >= 0")
 
 
 @dataclass
@@ -78,12 +49,12 @@ class _Group:
     digest: str
     out: str
     context: dict[str, Any]
-    """The twin, for the worker (`campaign.twin_context`)."""
+    """The twin, for the worker (`workers.twin_context`)."""
 
 
 def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: ValidateConfig) -> str:
     pose = twin.pose(pose_id)
-    blob = json.dumps(
+    return json_sha256(
         {
             "format": VALIDATION_FORMAT,
             "mesh": mesh_sha,
@@ -94,15 +65,14 @@ def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: Validate
             "starts": cfg.starts,
             "radius": [cfg.radius_translation, cfg.radius_rotation],
             "duration": cfg.duration,
+            "limits": cfg.limits.to_dict(),
             "seed": cfg.seed,
-        },
-        sort_keys=True,
+        }
     )
-    return hashlib.sha256(blob.encode()).hexdigest()
 
 
 def _run_group(group: _Group) -> dict[str, Any]:
-    backend, perception = campaign.worker_backend(group.context)
+    backend, perception = worker_backend(group.context)
     goal = np.asarray(group.goal)
     runs = []
     for k, start in enumerate(group.starts):
@@ -116,8 +86,6 @@ def _run_group(group: _Group) -> dict[str, Any]:
             break
         basin = r["fraction"]
     data = {
-        "format": VALIDATION_FORMAT,
-        "digest": group.digest,
         "pose": group.pose_id,
         "variant": group.variant,
         "success_rate": sum(r["converged"] for r in runs) / len(runs),
@@ -125,8 +93,8 @@ def _run_group(group: _Group) -> dict[str, Any]:
         "runs": runs,
     }
     # written whole and atomically, last: a group is done only once its file exists
-    atomic_write_text(Path(group.out), json.dumps(data, indent=1, default=json_default) + "\n")
-    return data
+    out = Path(group.out)
+    return JobStore(out.parent, VALIDATION_FORMAT).put(out.stem, group.digest, data)
 
 
 def validate(
@@ -137,6 +105,39 @@ def validate(
 ) -> dict[str, Any]:
     """Validates the twin's pruning poses; returns the summary (also written to the twin)."""
     return validate_many([twin], cfg, progress, executor)[0]
+
+
+def validate_folder(
+    path: str | Path,
+    cfg: ValidateConfig,
+    progress: Callable[[dict[str, Any], int, int], None] | None = None,
+    executor: ExecutorConfig | None = None,
+    *,
+    json_path: Path | None = None,
+    echo: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """`vinetwin validate`: the twin folder at `path`, or every twin of a vineyard folder.
+    `echo` receives each twin's servo-ability map (Markdown); `json_path` receives the summary
+    (a list for a vineyard). Raises VinetwinError naming the pose/variant validations that
+    failed (a rerun completes only them)."""
+    from vinetwin.errors import VinetwinError
+    from vinetwin.twin.model import find_twins
+
+    twins = [Twin.load(r) for r in find_twins(path)]
+    summaries = validate_many(twins, cfg, progress, executor)
+    if echo is not None:
+        for twin in twins:
+            echo((twin.validation_dir / "summary.md").read_text())
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(json_path, summaries[0] if len(summaries) == 1 else summaries)
+    failed = [f for s in summaries for f in s.get("failed", [])]
+    if failed:
+        raise VinetwinError(
+            f"{len(failed)} pose/variant validations failed (run again to complete them): "
+            + "; ".join(f"{f['pose']}.{f['variant']}: {f['error']}" for f in failed[:5])
+        )
+    return summaries
 
 
 def validate_many(
@@ -154,21 +155,25 @@ def validate_many(
     where = {id(g): k for k, (_, gs, _) in enumerate(plans) for g in gs}
     results: list[dict[tuple[str, str], Any]] = [dict(done) for _, _, done in plans]
     failed: list[dict[tuple[str, str], str]] = [{} for _ in twins]
-    done, errors, _ = campaign.run_jobs(
-        groups, executor or ExecutorConfig(workers=cfg.workers), progress, fn=_run_group
+    done, errors, _ = run_jobs(
+        groups, executor or ExecutorConfig(workers=cfg.workers), _run_group, progress
     )
     for g, d in done:
         results[where[id(g)]][(g.pose_id, g.variant)] = d
     for g, err in errors:
         failed[where[id(g)]][(g.pose_id, g.variant)] = err
     for twin in twins:  # a broken pool terminates writers mid-file
-        remove_orphan_temp_files(twin.root / "validation")
+        _store(twin).clean()
     summaries = []
     for k, (twin, _, _) in enumerate(plans):
         summary = _summarise(twin, cfg, _pose_ids(twin, cfg), results[k], failed[k])
         _write_map(summary, twin.root / "validation")
         summaries.append(summary)
     return summaries
+
+
+def _store(twin: Twin) -> JobStore:
+    return JobStore(twin.validation_dir, VALIDATION_FORMAT)
 
 
 def _pose_ids(twin: Twin, cfg: ValidateConfig) -> list[str]:
@@ -180,11 +185,9 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
     pose_ids = _pose_ids(twin, cfg)
     for pid in pose_ids:
         twin.pose(pid)  # unknown ids fail here, before any work
-    out_dir = twin.root / "validation"
-    out_dir.mkdir(exist_ok=True)
-    remove_orphan_temp_files(out_dir)  # left by writers killed in an earlier run
+    store = _store(twin).open()  # removes what writers killed in an earlier run left
     mesh_sha = file_sha256(twin.mesh_path)
-    ctx = campaign.twin_context(twin)
+    ctx = twin_context(twin)
     fractions = [(k + 1) / cfg.starts for k in range(cfg.starts)]
     groups, results = [], {}
     for pid in pose_ids:
@@ -193,22 +196,18 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
         goal = np.asarray(pose.T_vine_camera)
         for v in cfg.variants:
             digest = _digest(twin, mesh_sha, pid, v, cfg)
-            out = out_dir / f"{pid}.{v}.json"
-            if not cfg.force and out.exists():
-                try:
-                    old = json.loads(out.read_text())
-                except (OSError, ValueError):
-                    old = {}
-                if old.get("digest") == digest:
-                    results[(pid, v)] = old
-                    continue
+            out = store.path(f"{pid}.{v}")
+            old = None if cfg.force else store.current(f"{pid}.{v}", digest)
+            if old is not None:
+                results[(pid, v)] = old
+                continue
             rng = np.random.default_rng([cfg.seed, int(pose_seed(cfg.seed, pid))])
             starts = [
                 start_pose(goal, cut, f * cfg.radius_translation, f * cfg.radius_rotation, rng,
                            twin.camera, twin.perception.max_depth).tolist()
                 for f in fractions
             ]  # fmt: skip
-            sim = SimConfig(variant=v, duration=cfg.duration, seed=cfg.seed)
+            sim = SimConfig(variant=v, duration=cfg.duration, limits=cfg.limits, seed=cfg.seed)
             groups.append(
                 _Group(
                     pid,
@@ -286,7 +285,7 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
         lines.append(f"| {row['pose']} | " + " | ".join(cells) + " |")
     lines.append("\n![servo-ability map](summary.png)\n")
     atomic_write_text(out_dir / "summary.md", "\n".join(lines))
-    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1) + "\n")
+    atomic_write_json(out_dir / "summary.json", summary)
 
     import matplotlib
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin.camera import CameraModel
-from vinetwin.reconstruct.capture import Capture, CaptureError, write_capture
+from vinetwin.capture.folder import Capture, CaptureError, write_capture
 
 
 def _rs() -> Any:

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin.twin.model import atomic_write_text
+from vinetwin.files import atomic_write_text
+from vinetwin.sim.paper import PAPER_NAMES, PAPER_TABLE1
 
 COLORS = {
     "point_to_point": "tab:blue",
@@ -48,8 +49,6 @@ def _conv(s: dict[str, Any]) -> str:
 
 def table_rows(data: dict[str, Any]) -> list[dict[str, str]]:
     """One row per grid run, with the paper's Table 1 figures beside ours for that preset."""
-    from vinetwin.servo.campaign import PAPER_NAMES, PAPER_TABLE1
-
     rows = []
     for r in data["runs"]:
         if r["group"] != "grid":
@@ -287,3 +286,38 @@ def plot_group(data: dict[str, Any], group: str, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def print_tables(data: dict[str, Any]) -> None:
+    """Prints the campaign's tables (starts x variants, disturbance, initial guess)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    for rows, title in (
+        (table_rows(data), "starts x variants"),
+        (other_rows(data, "disturbance"), "disturbance"),
+        (other_rows(data, "guess"), "initial guess"),
+    ):
+        if not rows:
+            continue
+        keys = [k for k in rows[0] if k != "refusals"]
+        if all(r.get("paper (real robot)", "") == "-" for r in rows):
+            keys = [k for k in keys if k != "paper (real robot)"]
+        table = Table(*keys, title=title)
+        for r in rows:
+            table.add_row(*(r[k].split(":")[0] if k == "start" else r[k] for k in keys))
+        con.print(table)
+
+
+def plot_logs(logs: list[Path], out: Path) -> list[Path]:
+    """Servo logs (`vinetwin servo --log`) drawn with the campaign's error and trajectory
+    figures into `out`; returns the files written."""
+    from vinetwin.servo.loop import log_as_campaign
+
+    data = log_as_campaign(list(logs))
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "errors.png", out / "trajectories.png"]
+    plot_errors(data, paths[0])
+    plot_trajectories(data, paths[1])
+    return paths

@@ -1,0 +1,115 @@
+"""Files that survive a crash: atomic writes (a flushed temporary file renamed over the old
+one), the clean-up of temporary files that killed writers leave behind, and content hashes.
+
+Every file vinetwin writes (twin.json, meshes, references, capture frames, campaign runs,
+validation results) goes through `atomic_write_bytes`, so a reader sees the old file or the new
+one, never half of one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import json
+import os
+import re
+import socket
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from vinetwin._faults import fault_point
+
+#: Temporary files of `atomic_write_bytes`: `.NAME.HOST-PID.RANDOM.tmp`.
+_TEMP_RE = re.compile(r"^\..+\.(?P<host>[A-Za-z0-9-]+)-(?P<pid>[0-9]+)\.[^.]+\.tmp$")
+#: A temporary file this old is an orphan whoever wrote it (a write takes well under a second).
+ORPHAN_AGE_S = 3600.0
+
+
+@functools.cache
+def _host_tag() -> str:
+    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:40] or "host"
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Writes `data` to `path` through a flushed temporary file and a rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{path.name}.{_host_tag()}-{os.getpid()}.", suffix=".tmp", dir=path.parent
+    )
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        fault_point(str(path), "write")  # tests: a writer killed before the rename
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: Path, data: Any, indent: int | None = 1) -> None:
+    """`data` as JSON (numpy values as lists), atomically, with a final newline."""
+    from vinetwin._config import json_default
+
+    atomic_write_text(path, json.dumps(data, indent=indent, default=json_default) + "\n")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)  # signal 0: only asks whether the process exists
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, under another user
+        pass
+    return True
+
+
+def remove_orphan_temp_files(folder: Path) -> list[Path]:
+    """Removes the temporary files that writers killed in the middle of `atomic_write_bytes`
+    left in `folder` (a worker killed by the OOM killer, or terminated by a pool that broke
+    while it was writing): those written on this machine by a process that is gone, and any
+    older than `ORPHAN_AGE_S`. Files being written by a live process are kept. Returns what
+    was removed."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    host, now, removed = _host_tag(), time.time(), []
+    for p in folder.glob(".*.tmp"):
+        m = _TEMP_RE.match(p.name)
+        try:
+            old = now - p.stat().st_mtime > ORPHAN_AGE_S
+        except OSError:
+            continue
+        dead = m is not None and m["host"] == host and not _pid_alive(int(m["pid"]))
+        if old or dead:
+            with contextlib.suppress(OSError):
+                p.unlink()
+                removed.append(p)
+    return removed
+
+
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file's content (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def json_sha256(data: Any) -> str:
+    """The SHA-256 of `data` as canonical JSON (sorted keys; numpy values as lists): the digest
+    of a job's inputs."""
+    from vinetwin._config import json_default
+
+    blob = json.dumps(data, sort_keys=True, default=json_default)
+    return hashlib.sha256(blob.encode()).hexdigest()

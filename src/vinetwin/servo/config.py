@@ -1,0 +1,195 @@
+"""Every setting of the servo, declared once: the camera's speed and acceleration limits
+(`Limits`, which the servo law saturates to and ramps by, and `CommandLimits`, which adds the
+robot's watchdog and is what the command guard enforces), when an alignment is trusted
+(`SafetyConfig`), the law and the ICP variant (`ServoConfig`), and how the loop runs
+(`LoopConfig`).
+
+The defaults of `Limits` are the safety limits `docs/hardware.md` states; the command line, the
+web app, the simulation and the hardware adapters all read them from here. This module imports
+nothing heavy, so `vinetwin --help` stays instant.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+from vinetwin._config import JsonFields
+from vinetwin.errors import InputError
+
+#: The ICP variants (the paper's four).
+Variant = Literal["point_to_point", "lm", "point_to_plane", "symmetric"]
+#: Where each frame's ICP starts (see `servo.step.Servo`).
+Guess = Literal["kinematic", "previous", "identity"]
+GUESSES: tuple[str, ...] = ("kinematic", "previous", "identity")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Limits(JsonFields):
+    """The camera's speed and acceleration limits. The servo law saturates its twist to the
+    speeds (direction kept) and ramps its growth by the accelerations; the robot's command guard
+    (`CommandLimits`) enforces the same numbers on what leaves for the arm."""
+
+    max_linear: float = 0.05
+    """Camera speed limit, m/s."""
+    max_angular: float = 0.25
+    """Camera angular speed limit, rad/s."""
+    max_linear_acceleration: float = 0.5
+    """Ramp on increases of the linear speed, m/s^2; 0: none. Stops are never ramped."""
+    max_angular_acceleration: float = 2.5
+    """Ramp on increases of the angular speed, rad/s^2; 0: none."""
+
+    def __post_init__(self) -> None:
+        for name in ("max_linear", "max_angular"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"{name} must be positive and finite, got {v}")
+        for name in ("max_linear_acceleration", "max_angular_acceleration"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"{name} must be >= 0 and finite, got {v}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CommandLimits(Limits):
+    """What may leave a robot adapter: the speed and acceleration limits, and the watchdog."""
+
+    watchdog: float = 0.2
+    """Stop the robot when no command has come for this long (s)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not (math.isfinite(self.watchdog) and self.watchdog > 0):
+            raise InputError(f"watchdog must be positive and finite, got {self.watchdog}")
+
+    def speeds(self) -> Limits:
+        """The limits without the watchdog (what the servo law uses)."""
+        return Limits(**{k: v for k, v in self.to_dict().items() if k != "watchdog"})
+
+
+@dataclass(frozen=True, kw_only=True)
+class SafetyConfig(JsonFields):
+    """When an alignment is trusted enough to move the arm."""
+
+    min_overlap: float = 0.3
+    """Smallest share of the smaller cloud (frame or reference) paired (`ICPResult.overlap`)."""
+    min_correspondences: int = 60
+    """Fewest pairs."""
+    max_rmse: float = 0.003
+    """Largest inlier RMSE (m)."""
+    max_jump_translation: float = 0.01
+    """Largest distance (m) between the estimate and its prediction. Without robot kinematics
+    the distance the camera may have covered at `Limits.max_linear` since the last trusted frame
+    is added."""
+    max_jump_rotation: float = 0.05
+    """Largest angle (rad) between the estimate and its prediction (same allowance)."""
+    max_frame_age: float = 0.1
+    """A frame older than this (s) when `step` is called with `now` is stale."""
+    reacquire_frames: int = 5
+    """A pose jump seen consistently in this many consecutive frames (estimates within
+    `reacquire_translation` / `reacquire_rotation` of each other) is accepted as the scene having
+    moved; 0: never."""
+    reacquire_translation: float = 0.002
+    """m."""
+    reacquire_rotation: float = 0.01
+    """rad."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServoConfig(JsonFields):
+    """The servo law and its registration: which ICP variant, the gains, where ICP starts, and
+    when the goal is reached."""
+
+    variant: Variant = "point_to_plane"
+    """ICP variant."""
+    gain: float = 1.0
+    """lambda at the goal (adaptive gain, ViSP's law)."""
+    gain_far: float = 0.4
+    """lambda far from the goal."""
+    guess: Guess = "kinematic"
+    """Where ICP starts each frame: kinematic (eq. 11), previous or identity."""
+    converged_translation: float = 0.002
+    """At the goal when the error is within this (m)..."""
+    converged_rotation: float = 0.01
+    """...and this (rad)."""
+
+    def __post_init__(self) -> None:
+        from vinetwin.cloud import ICP_VARIANTS
+
+        if self.variant not in ICP_VARIANTS:
+            raise InputError(
+                f"unknown ICP variant '{self.variant}'; choose one of: {', '.join(ICP_VARIANTS)}"
+            )
+        if self.guess not in GUESSES:
+            raise InputError(f"unknown guess '{self.guess}'; choose one of: {', '.join(GUESSES)}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LoopConfig(JsonFields):
+    """How the loop runs and when it ends."""
+
+    dry_run: bool = False
+    """Compute and log twists, send none."""
+    duration: float = 0.0
+    """End after this many seconds of frames (stamp clock); 0: no limit."""
+    max_frames: int = 0
+    """End after this many frames; 0: no limit."""
+    settle: float = 2.0
+    """End once the servo has reported being at its goal for this long (s); 0: never."""
+    frame_timeout: float = 0.2
+    """Stop the robot when no frame came for this long (s)."""
+    camera_lost: float = 2.0
+    """End the run when no frame came for this long (s)."""
+    max_cycle: float = 0.1
+    """A frame whose command comes later than this after its capture (stamp) sends zero
+    instead; 0: no check (simulation, where time is simulated)."""
+
+    def __post_init__(self) -> None:
+        if self.frame_timeout <= 0 or self.camera_lost < self.frame_timeout:
+            raise InputError("frame_timeout must be positive and camera_lost >= frame_timeout")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunnerConfig(JsonFields):
+    """One `vinetwin servo` run: which camera and robot, the servo, the limits, the loop, and
+    the settings of the live camera, the Franka and the simulated start."""
+
+    pose: str = ""
+    """Pruning pose id (default: the twin's first)."""
+    camera: str = "sim"
+    """realsense[:SERIAL] (a live D405), bag:FILE (a RealSense recording), folder:DIR (a capture
+    folder), sim (rendered from the twin, simulated time), or render (rendered from the twin at
+    a real robot's pose, in real time: the robot link without a camera)."""
+    robot: str = "sim"
+    """franka:HOST (franky-control), sim (a free-flying camera), mujoco (the MuJoCo Panda) or
+    none (compute and log only)."""
+    robot_model: str = ""
+    """With --robot mujoco: a Panda model folder or MJCF file (default: vinetwin's own)."""
+    servo: ServoConfig = field(default_factory=ServoConfig)
+    limits: CommandLimits = field(default_factory=CommandLimits)
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(duration=30.0))
+    width: int = 848
+    """Live camera: depth width (848 or 1280 for the twin's D405 presets)."""
+    height: int = 480
+    """Live camera: depth height."""
+    fps: int = 30
+    """Live or rendered camera: frames per second (30, 60 or 90)."""
+    rate: float | None = None
+    """Playback pacing in frames per second. folder: default as fast as read; bag: default the
+    recorded rate, 0 as fast as read."""
+    color: bool = False
+    """Also stream colour aligned to depth (live or bag; kept by --record)."""
+    camera_rate: float = 30.0
+    """Simulation: camera frames per second."""
+    start_translation: float = 0.04
+    """Simulation: start this far from the pruning pose (m)."""
+    start_rotation: float = 0.1
+    """Simulation: and this angle (rad)."""
+    dynamics_factor: float = 0.2
+    """franka: fraction of the robot's velocity, acceleration and jerk limits."""
+    realtime: bool = True
+    """franka: demand a real-time kernel (libfranka's default); --no-realtime for a simulated
+    Franka or bench tests."""
+    seed: int = 0
+    """Seed of the simulated start, noise and registration error."""

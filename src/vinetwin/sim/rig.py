@@ -1,0 +1,182 @@
+"""The simulation rig, built in one place: where the run starts (`start_pose`), where the robot
+believes the goal is (`believed_goal`), and the servo, the simulated arm (a free-flying camera or
+the MuJoCo Panda) and the simulated camera that close the loop (`build_rig`). The closed-loop run
+(`sim.simulate`), the campaign, the validation, `vinetwin servo --camera sim` and the web app's
+validate button all build their runs here."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from vinetwin.camera import CameraModel
+from vinetwin.cloud import Cloud, PerceptionConfig
+from vinetwin.errors import InputError
+from vinetwin.frames import Array, invert, make_pose, so3_exp, transform_points
+from vinetwin.render.backends import DepthBackend
+from vinetwin.render.sensor import SensorConfig
+from vinetwin.servo.config import CommandLimits, RunnerConfig, SafetyConfig
+from vinetwin.servo.runner import Session
+from vinetwin.servo.step import Servo, make_servo
+from vinetwin.sim.camera import SimCameraSource
+from vinetwin.sim.config import Disturbance, SimConfig
+from vinetwin.sim.robots import KinematicRobot, MujocoRobot, SimulatedRobot
+from vinetwin.twin.model import PruningPose, Twin
+
+
+def start_pose(
+    goal: Array,
+    target: Array,
+    translation: float,
+    rotation: float,
+    rng: np.random.Generator,
+    camera: CameraModel,
+    max_depth: float,
+    tries: int = 500,
+) -> Array:
+    """A camera pose `translation` (m) and `rotation` (rad) away from `goal` that still sees
+    `target` (a point in the world, the cut) inside the image and within range: a start a robot
+    would be given. Directions are random; the first of `tries` that sees the target wins (else
+    the one that sees it best)."""
+    best, best_score = None, -math.inf
+    for _ in range(tries):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        a = rng.normal(size=3)
+        a /= np.linalg.norm(a)
+        T = make_pose(goal[:3, :3] @ so3_exp(rotation * a), goal[:3, 3] + translation * d)
+        p = transform_points(invert(T), target[None])[0]
+        if p[2] <= 0:
+            continue
+        u = camera.fx * p[0] / p[2] + camera.cx
+        v = camera.fy * p[1] / p[2] + camera.cy
+        margin = min(u, camera.width - u, v, camera.height - v) / max(camera.width, camera.height)
+        depth_ok = 0.07 <= p[2] <= max_depth - 0.03
+        score = margin if depth_ok else margin - 1.0
+        if score > 0.1:
+            return T
+        if score > best_score:
+            best, best_score = T, score
+    assert best is not None
+    return best
+
+
+def believed_goal(goal: Array, config: SimConfig, rng: np.random.Generator) -> Array:
+    """Where the robot believes the reference camera is: the goal, off by the configured
+    registration error (the first frame's guess comes from it)."""
+    return goal @ make_pose(
+        so3_exp(_random_vector(rng, config.registration_error_rotation)),
+        _random_vector(rng, config.registration_error_translation),
+    )
+
+
+@dataclass
+class Rig:
+    """One simulated run's pieces, ready for `servo.loop.run_loop`."""
+
+    servo: Servo
+    source: SimCameraSource
+    robot: SimulatedRobot
+    T_base_vine: Array
+    """Where the vine stands in the robot base (the identity for the free-flying camera)."""
+
+
+def build_rig(
+    backend: DepthBackend,
+    goal: Array,
+    start: Array,
+    reference: Cloud,
+    perception: PerceptionConfig,
+    config: SimConfig,
+    rng: np.random.Generator,
+    *,
+    arm: Any = None,
+    T_flange_camera: Array | None = None,
+    disturbance: Disturbance | None = None,
+    sensor: SensorConfig | None = None,
+    safety: SafetyConfig | None = None,
+    watchdog: float | None = None,
+) -> Rig:
+    """The servo towards `reference` (rendered at `goal`, a camera pose in the vine frame), its
+    first guess off by the configured registration error, a simulated arm whose camera is at
+    `start`, and the simulated camera on it.
+
+    With `arm` (a `sim.panda.PandaArm` whose scene holds the vine at `arm.T_base_vine`) the arm
+    first reaches the start pose (a start it cannot reach raises InputError); without it the
+    camera flies freely. `rng` draws the registration error, then the camera's noise."""
+    cfg = config
+    servo = make_servo(reference, backend.camera, perception, cfg, cfg.limits, safety)
+    servo.reset(invert(believed_goal(goal, cfg, rng)) @ start)
+    limits = CommandLimits(
+        **cfg.limits.to_dict(), **({} if watchdog is None else {"watchdog": watchdog})
+    )
+    robot: SimulatedRobot
+    if arm is None:
+        T_base_vine = np.eye(4)
+        robot = KinematicRobot(start, T_flange_camera, limits)
+    else:
+        T_base_vine = np.asarray(arm.T_base_vine, float)
+        ok, dt_, dr_ = arm.reach(T_base_vine @ start)
+        if not ok:
+            raise InputError(
+                f"the arm cannot reach the start pose ({1000 * dt_:.1f} mm, {dr_:.3f} rad short)"
+            )
+        robot = MujocoRobot(arm, limits)
+    source = SimCameraSource(
+        backend, robot, T_base_vine, rng, sensor=sensor, camera_rate=cfg.camera_rate,
+        fixed_period=cfg.fixed_period, disturbance=disturbance,
+    )  # fmt: skip
+    return Rig(servo, source, robot, T_base_vine)
+
+
+def _random_vector(rng: np.random.Generator, norm: float) -> Array:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v) * norm
+
+
+def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Session:
+    """`vinetwin servo --camera sim`: the simulated D405 on a free-flying camera (`--robot sim`)
+    or on the MuJoCo Panda (`--robot mujoco`), from a start `cfg.start_translation` /
+    `start_rotation` away from the pruning pose that still sees the cut."""
+    from vinetwin.render.backends import get_backend
+    from vinetwin.servo.runner import reference_cloud, true_error_of
+
+    goal = np.asarray(pose.T_vine_camera, float)
+    sim = SimConfig(
+        **cfg.servo.to_dict(),
+        limits=cfg.limits.speeds(),
+        camera_rate=cfg.camera_rate,
+        duration=max(cfg.loop.duration, 1e-3),
+        seed=cfg.seed,
+    )
+    mesh = twin.load_mesh()
+    backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
+    rng = np.random.default_rng(cfg.seed)
+    cut = twin.cut_point(pose.cut_point).point
+    start = start_pose(
+        goal, cut, cfg.start_translation, cfg.start_rotation, rng, twin.camera,
+        twin.perception.max_depth,
+    )  # fmt: skip
+    arm = None
+    if cfg.robot == "mujoco":
+        from vinetwin.sim.panda import PandaArm, goal_placement
+
+        arm = PandaArm(
+            cfg.robot_model or None, T_flange_camera=twin.T_flange_camera, camera=twin.camera,
+            vine=(mesh.vertices, mesh.faces), T_base_vine=goal_placement(goal),
+        )  # fmt: skip
+    rig = build_rig(
+        backend, goal, start, reference_cloud(twin, pose.id), twin.perception, sim, rng,
+        arm=arm, T_flange_camera=twin.T_flange_camera, watchdog=cfg.limits.watchdog,
+    )  # fmt: skip
+    return Session(
+        rig.servo,
+        rig.source,
+        rig.robot,
+        replace(cfg.loop, max_cycle=0.0),
+        rig.T_base_vine @ goal,
+        true_error_of(rig.source, goal),
+    )

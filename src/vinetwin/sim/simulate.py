@@ -1,0 +1,196 @@
+"""Closed-loop simulation with a kinematic camera: render -> D405 model -> perception -> ICP ->
+PBVS -> integrate the twist -> render again.
+
+The camera is a free-flying rigid body whose pose integrates the commanded twist (a perfect
+velocity-controlled arm). Each frame is rendered from the twin's mesh at the camera's pose
+relative to the vine, through the D405 sensor model with fresh noise, and goes through
+`Servo.step_depth`, the same perception chain and safety rules as live frames.
+
+Timing. The outer loop is free-running, as in the paper: a frame is taken, processed, and its
+twist held (zero-order hold) until the next frame is taken, at the next camera tick after the
+processing ended. With processing faster than the camera that is one frame period; slower
+processing holds each twist longer, and the trajectory degrades as the paper describes.
+`SimConfig.fixed_period` replaces the measured time by a fixed one (reproducible runs).
+
+Frames. The world is the vine's original frame and also the robot base: `T_base_camera` (the
+robot's kinematics, exact here) is the camera pose in it. A disturbance moves the vine rigidly,
+so the goal moves with it and the kinematic guess is wrong by the disturbance until the servo
+re-acquires (see `SafetyConfig.reacquire_frames`).
+
+Metrics (`SimRun.summary`):
+- final static error: the median true translation / rotation error over the last 0.5 s;
+- converged: the final static error is within `converged_translation` / `converged_rotation`
+  (2 mm / 0.01 rad);
+- convergence time: the first time after which the true error stays within those tolerances to
+  the end of the run (None when it never does);
+- loop rate: frames processed per simulated second, and the median compute time per frame.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin.capture.folder import CaptureWriter
+from vinetwin.cloud import PerceptionConfig
+from vinetwin.frames import Array, pose_error
+from vinetwin.render.backends import DepthBackend
+from vinetwin.render.reference import render_reference
+from vinetwin.render.sensor import SensorConfig
+from vinetwin.servo.config import LoopConfig, SafetyConfig
+from vinetwin.servo.loop import Cycle, CycleLog, run_loop
+from vinetwin.sim.config import Disturbance, SimConfig
+from vinetwin.sim.rig import build_rig
+
+
+@dataclass
+class SimRun:
+    """Time series and outcome of one run (poses are camera poses in the world frame)."""
+
+    config: SimConfig
+    pose_id: str
+    goal: Array
+    start: Array
+    disturbance: Disturbance = field(default_factory=Disturbance)
+    t: list[float] = field(default_factory=list)
+    T: list[Array] = field(default_factory=list)
+    error_t: list[float] = field(default_factory=list)
+    error_r: list[float] = field(default_factory=list)
+    trusted: list[bool] = field(default_factory=list)
+    compute: list[float] = field(default_factory=list)
+    reasons: dict[str, int] = field(default_factory=dict)
+    wall: float = 0.0
+
+    def summary(self) -> dict[str, Any]:
+        cfg = self.config
+        t = np.asarray(self.t)
+        et = np.asarray(self.error_t)
+        er = np.asarray(self.error_r)
+        last = t >= (t[-1] - 0.5) if len(t) else np.zeros(0, bool)
+        final_t = float(np.median(et[last])) if last.any() else math.nan
+        final_r = float(np.median(er[last])) if last.any() else math.nan
+        inside = (et <= cfg.converged_translation) & (er <= cfg.converged_rotation)
+        conv_time = None
+        if inside.size and inside[-1]:
+            outside = np.nonzero(~inside)[0]
+            k = int(outside[-1]) + 1 if outside.size else 0
+            conv_time = float(t[k]) if k < len(t) else None
+        sim_time = float(t[-1]) if len(t) else 0.0
+        start_t, start_r = pose_error(self.start, self.goal)
+        return {
+            "pose": self.pose_id,
+            "variant": cfg.variant,
+            "guess": cfg.guess,
+            "start_translation": start_t,
+            "start_rotation": start_r,
+            "final_translation": final_t,
+            "final_rotation": final_r,
+            "converged": bool(
+                final_t <= cfg.converged_translation and final_r <= cfg.converged_rotation
+            ),
+            "convergence_time": conv_time,
+            "frames": len(t),
+            "refused": int(len(self.trusted) - sum(self.trusted)),
+            "refusal_reasons": dict(self.reasons),
+            "simulated_s": sim_time,
+            "loop_rate_hz": (len(t) - 1) / sim_time if sim_time > 0 else math.nan,
+            "compute_ms": 1000 * float(np.median(self.compute)) if self.compute else math.nan,
+            "wall_s": self.wall,
+            "realtime_factor": sim_time / self.wall if self.wall > 0 else math.nan,
+        }
+
+    def series(self, step: int = 1) -> dict[str, Any]:
+        """The time series as plain lists (every `step`-th frame)."""
+        sl = slice(None, None, step)
+        return {
+            "t": self.t[sl],
+            "error_t": self.error_t[sl],
+            "error_r": self.error_r[sl],
+            "trusted": self.trusted[sl],
+            "position": [T[:3, 3].tolist() for T in self.T[sl]],
+        }
+
+
+def simulate(
+    backend: DepthBackend,
+    goal: Array,
+    start: Array,
+    reference_seed: int,
+    perception: PerceptionConfig,
+    config: SimConfig,
+    *,
+    disturbance: Disturbance | None = None,
+    sensor: SensorConfig | None = None,
+    pose_id: str = "",
+    safety: SafetyConfig | None = None,
+    arm: Any = None,
+    log: CycleLog | None = None,
+    record: str | Path | None = None,
+) -> SimRun:
+    """One closed-loop run from `start` to `goal` (camera poses in the vine frame), through
+    `loop.run_loop`, the loop that drives hardware.
+
+    With `arm` (a `sim.panda.PandaArm` whose scene holds the vine at `arm.T_base_vine`), the
+    camera is the D405 on the Panda's hand: the arm first reaches the start pose (a start it
+    cannot reach raises InputError), then each twist drives its joints. Without it the camera
+    flies freely. `log` receives every cycle (with the true error); `record` writes the frames,
+    with their stamps and robot poses, as a capture folder that `FolderSource` replays."""
+    cfg = config
+    camera = backend.camera
+    sensor = sensor or SensorConfig()
+    dist = disturbance or Disturbance()
+    rng = np.random.default_rng(cfg.seed)
+    ref = render_reference(backend, goal, perception, sensor, reference_seed).cloud
+    run = SimRun(cfg, pose_id, np.asarray(goal, float), np.asarray(start, float), dist)
+    rig = build_rig(
+        backend, goal, start, ref, perception, cfg, rng, arm=arm, disturbance=dist,
+        sensor=sensor, safety=safety,
+    )  # fmt: skip
+    servo, source, robot = rig.servo, rig.source, rig.robot
+    writer = None
+    if record is not None:
+        writer = CaptureWriter(
+            record, camera, camera.depth_unit, extra={"provenance": {"simulation": cfg.to_dict()}}
+        )
+    at_goal_since: list[float | None] = [None]
+
+    def on_cycle(c: Cycle) -> dict[str, Any]:
+        r, t = c.result, c.frame.stamp
+        et, er = pose_error(source.T_rel, goal)
+        run.t.append(t)
+        run.T.append(source.T.copy())
+        run.error_t.append(et)
+        run.error_r.append(er)
+        run.trusted.append(r.trusted)
+        run.compute.append(sum(r.timings.values()))
+        if not r.trusted:
+            key = r.reason.split(":")[0]
+            run.reasons[key] = run.reasons.get(key, 0) + 1
+        if writer is not None:
+            writer.add(c.frame.counts, None, c.T_base_camera, t)
+        end = t + 1e-9 >= cfg.duration
+        if cfg.settle > 0:  # settled at the goal (and past the disturbance)
+            if r.trusted and r.at_goal:
+                since = at_goal_since[0] = t if at_goal_since[0] is None else at_goal_since[0]
+                if t - since >= cfg.settle and (dist.time < 0 or t > dist.time + cfg.settle):
+                    end = True
+            elif r.trusted or at_goal_since[0] is None:
+                at_goal_since[0] = None
+        return {"true_error": [et, er], "end_run": end}
+
+    wall0 = time.perf_counter()
+    try:
+        run_loop(
+            servo, source, robot, LoopConfig(settle=0.0, max_cycle=0.0), log=log,
+            on_cycle=on_cycle,
+        )  # fmt: skip
+    finally:
+        if writer is not None:
+            writer.close()
+    run.wall = time.perf_counter() - wall0
+    return run

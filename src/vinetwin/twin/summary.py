@@ -1,0 +1,51 @@
+"""A twin's summary, as `vinetwin info` prints it."""
+
+from __future__ import annotations
+
+from vinetwin.twin.model import Twin
+
+
+def print_summary(twin: Twin, mesh: bool = True) -> None:
+    """Prints what a twin holds: mesh, camera, cut points, and each pose with its servo-ability."""
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    con.print(f"[bold]{twin.name}[/] at {twin.root}")
+    if mesh:
+        m = twin.load_mesh()
+        ext = m.bounds[1] - m.bounds[0]
+        con.print(
+            f"mesh {twin.mesh_file}: {len(m.vertices)} vertices, {len(m.faces)} triangles, "
+            f"extent {ext[0]:.3f} x {ext[1]:.3f} x {ext[2]:.3f} m"
+        )
+    con.print(f"camera {twin.camera.name}: {twin.camera.width}x{twin.camera.height}")
+    table = Table(
+        "pose", "cut point", "standoff (m)", "ICP variant", "camera position (m)", "servo-ability"
+    )
+    for p in twin.poses:
+        t = p.T_vine_camera[:3, 3]
+        table.add_row(
+            p.id,
+            p.cut_point,
+            f"{p.standoff:.3f}",
+            p.icp_variant,
+            f"{t[0]:+.3f} {t[1]:+.3f} {t[2]:+.3f}",
+            servo_ability(p.extra.get("validation"), p.icp_variant),
+        )
+    con.print(f"{len(twin.cut_points)} cut points, {len(twin.poses)} pruning poses")
+    if twin.poses:
+        con.print(table)
+
+
+def servo_ability(validation: object, variant: str) -> str:
+    """One pose's validation summary for its own ICP variant ('not validated' without one)."""
+    if not isinstance(validation, dict):
+        return "not validated"
+    cell = validation.get("variants", {}).get(variant)
+    if not isinstance(cell, dict):
+        return f"not validated with {variant}"
+    return (
+        f"{100 * cell.get('success_rate', 0):.0f}% of {cell.get('starts', '?')} starts; basin "
+        f"{1000 * cell.get('basin_translation', 0):.0f} mm / {cell.get('basin_rotation', 0):.2f} rad"
+    )
