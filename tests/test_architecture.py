@@ -88,7 +88,7 @@ def test_no_import_circle_between_modules() -> None:
         path.append(m)
         for n in sorted(graph.get(m, ())):
             if state.get(n) == 1:
-                raise AssertionError("import circle: " + " -> ".join([*path[path.index(n):], n]))
+                raise AssertionError("import circle: " + " -> ".join([*path[path.index(n) :], n]))
             if n not in state:
                 visit(n)
         path.pop()
@@ -101,9 +101,7 @@ def test_no_import_circle_between_modules() -> None:
 
 def test_servo_and_reconstruct_do_not_import_each_other() -> None:
     crossing = [
-        (s, d)
-        for s, d in _imports()
-        if {_package(s), _package(d)} == {"servo", "reconstruct"}
+        (s, d) for s, d in _imports() if {_package(s), _package(d)} == {"servo", "reconstruct"}
     ]
     assert not crossing, crossing
 

@@ -31,8 +31,8 @@ from vinetwin.capture.sources import (
 )
 from vinetwin.cli import main
 from vinetwin.render.reference import pose_seed
-from vinetwin.servo.loop import CycleLog, LoopConfig, read_log, run_loop
 from vinetwin.servo.config import ServoConfig
+from vinetwin.servo.loop import CycleLog, LoopConfig, read_log, run_loop
 from vinetwin.servo.robot import (
     CommandLimits,
     FrankaRobot,

@@ -11,8 +11,8 @@ import pytest
 from tests.conftest import VineViews, shared
 from vinetwin import _lazy
 from vinetwin import frames as fr
-from vinetwin.sim.panda import PANDA_DIR, PandaArm, goal_placement
 from vinetwin.sim.config import SimConfig
+from vinetwin.sim.panda import PANDA_DIR, PandaArm, goal_placement
 from vinetwin.sim.rig import start_pose
 from vinetwin.sim.simulate import simulate
 

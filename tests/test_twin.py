@@ -164,7 +164,7 @@ def test_orphan_temp_files_are_removed_and_live_ones_kept(tmp_path: Path) -> Non
     import subprocess
     import sys
 
-    from vinetwin.twin.model import ORPHAN_AGE_S, _host_tag, remove_orphan_temp_files
+    from vinetwin.files import ORPHAN_AGE_S, _host_tag, remove_orphan_temp_files
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
                           capture_output=True, text=True, check=True)  # fmt: skip

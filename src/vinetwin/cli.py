@@ -14,6 +14,7 @@ from typing import Annotated, Literal
 import tyro
 
 from vinetwin.errors import VinetwinError
+from vinetwin.progress import with_progress
 from vinetwin.reconstruct.pipeline import ReconstructConfig
 from vinetwin.servo.config import RunnerConfig
 from vinetwin.sim.config import CampaignConfig, ValidateConfig
@@ -43,20 +44,13 @@ class Sample:
     """Replace a twin already in OUT."""
 
     def run(self) -> None:
-        from vinetwin.twin.generator import VineParams, generate_vine
-        from vinetwin.twin.model import twin_from_skeleton
+        from vinetwin.twin.generator import sample_twin
         from vinetwin.twin.summary import print_summary
 
-        sk = generate_vine(self.seed, VineParams(cordons=self.cordons))
-        source = {
-            "generator": "vinetwin.twin.generator",
-            "seed": self.seed,
-            "cordons": self.cordons,
-        }
         print_summary(
-            twin_from_skeleton(
-                self.out, sk, edge=self.edge, source=source, cut_points=self.cut_points,
-                overwrite=self.overwrite,
+            sample_twin(
+                self.out, self.seed, cordons=self.cordons, edge=self.edge,
+                cut_points=self.cut_points, overwrite=self.overwrite,
             )
         )  # fmt: skip
 
@@ -79,16 +73,12 @@ class ImportVine:
     """Replace a twin already in OUT."""
 
     def run(self) -> None:
-        from vinetwin.twin.importers import detect_format, load_skeleton
-        from vinetwin.twin.model import twin_from_skeleton
+        from vinetwin.twin.importers import import_twin
         from vinetwin.twin.summary import print_summary
 
-        fmt = detect_format(self.file) if self.format == "auto" else self.format
         print_summary(
-            twin_from_skeleton(
-                self.out, load_skeleton(self.file, fmt), edge=self.edge,
-                caps="round" if fmt == "hydroshoot" else "flat",
-                source={"importer": fmt, "file": str(self.file)}, cut_points=self.cut_points,
+            import_twin(
+                self.file, self.out, self.format, edge=self.edge, cut_points=self.cut_points,
                 overwrite=self.overwrite,
             )
         )  # fmt: skip
@@ -121,12 +111,9 @@ class Cluster:
     same path on every node."""
 
     def executor(self, workers: int):  # type: ignore[no-untyped-def]
-        """The executor the flags ask for (None: the command's default local pool)."""
         from vinetwin.executor import ExecutorConfig
 
-        if self.ray_address:
-            return ExecutorConfig(kind="ray", address=self.ray_address)
-        return ExecutorConfig(kind="ray", workers=workers) if self.ray else None
+        return ExecutorConfig.from_flags(self.ray, self.ray_address, workers)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -154,7 +141,7 @@ class Export:
     def run(self) -> None:
         from vinetwin.render.export import check_export_ok, export_twins, print_report
 
-        report, where = _with_progress(
+        report, where = with_progress(
             "exporting references",
             lambda progress: export_twins(
                 self.twin, self.poses, backend=self.backend, workers=self.workers,
@@ -188,20 +175,6 @@ class Preview:
         preview_pose(Twin.load(self.twin), self.pose, self.out, self.backend, self.seed)
 
 
-def _with_progress(label: str, work):  # type: ignore[no-untyped-def]
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    with Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()
-    ) as bar:
-        task = bar.add_task(label, total=None)
-
-        def progress(result: object, done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
-
-        return work(progress)
-
-
 @dataclass(frozen=True, kw_only=True)
 class Campaign:
     """Servo in simulation from the paper's starts with each ICP variant, plus a disturbance run
@@ -226,7 +199,7 @@ class Campaign:
         from vinetwin.twin.model import Twin
 
         out = self.out or (self.twin / "campaign" / self.config.preset)
-        data = _with_progress(
+        data = with_progress(
             "simulating",
             lambda progress: run_campaign(
                 Twin.load(self.twin), self.config, out, progress,
@@ -252,7 +225,7 @@ class Validate:
     def run(self) -> None:
         from vinetwin.sim.validate import validate_folder
 
-        _with_progress(
+        with_progress(
             "validating",
             lambda progress: validate_folder(
                 self.twin,
@@ -333,7 +306,7 @@ class CaptureSynthetic:
         from vinetwin.twin.model import Twin
 
         twin = Twin.load(self.twin)
-        path = _with_progress(
+        path = with_progress(
             "rendering frames",
             lambda progress: synthetic_capture(
                 twin, self.out, self.frames, self.distance, self.seed, self.pose_noise, progress,
@@ -383,19 +356,13 @@ class Reconstruct:
 
         from vinetwin.reconstruct.pipeline import reconstruct
 
-        report = _with_progress(
+        report = with_progress(
             "fusing frames",
             lambda progress: reconstruct(
                 self.capture, self.twin, self.config, overwrite=self.overwrite,
                 ground_truth=self.ground_truth, progress=progress,
             ),
         )  # fmt: skip
-        ev = report.get("evaluation")
-        if ev:
-            print(
-                f"Chamfer {ev['chamfer_mm']:.2f} mm, F-score@2mm {ev['fscore@2mm']:.3f}, "
-                f"F-score@5mm {ev['fscore@5mm']:.3f}"
-            )
         if self.json:
             self.json.parent.mkdir(parents=True, exist_ok=True)
             self.json.write_text(json.dumps(report, indent=1))
@@ -414,14 +381,9 @@ class Web:
     """Port to listen on."""
 
     def run(self) -> None:
-        import time
-
         from vinetwin.web.app import serve_folder
 
-        serve_folder(self.twin, self.host, self.port)
-        print(f"vinetwin web: open http://{self.host}:{self.port} (Ctrl-C stops)", flush=True)
-        while True:
-            time.sleep(3600)
+        serve_folder(self.twin, self.host, self.port, forever=True)
 
 
 @dataclass(frozen=True, kw_only=True)

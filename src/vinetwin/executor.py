@@ -64,6 +64,13 @@ class ExecutorConfig(JsonFields):
         if self.workers < 0 or self.retries < 0:
             raise InputError("workers and retries must be >= 0")
 
+    @classmethod
+    def from_flags(cls, ray: bool, address: str, workers: int) -> ExecutorConfig | None:
+        """What `--ray` / `--ray-address` ask for (None: the command's default local pool)."""
+        if address:
+            return cls(kind="ray", address=address)
+        return cls(kind="ray", workers=workers) if ray else None
+
 
 @dataclass
 class Outcome:

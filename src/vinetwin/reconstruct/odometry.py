@@ -3,7 +3,7 @@ structure-from-motion result.
 
 Open3D's dense RGB-D odometry was tried first and failed on vine captures (thin canes against an
 empty background: a single pair's error exceeded the motion between the frames; see
-docs/reconstruct.md). vinetwin instead chains its own point-to-plane ICP (`servo.icp`, the same
+docs/reconstruct.md). vinetwin instead chains its own point-to-plane ICP (`registration.icp`, the same
 perception chain as the servo) between consecutive frames, each starting from the previous
 motion (constant velocity). It needs a video-like capture (frames a few centimetres and degrees
 apart). A pair that does not align keeps the previous motion and is reported. Poses come out in

@@ -131,8 +131,12 @@ def reconstruct(
         )
         Vg, Fg = np.asarray(gt.vertices), np.asarray(gt.faces)
         gt_poses = kinematic_poses(cap) if cap.has_poses else poses
-        report["evaluation"] = evaluate(
+        ev = report["evaluation"] = evaluate(
             res.vertices, res.faces, Vg, Fg,
             gt_mask_fn=lambda p, n: observed(p, n, cap, gt_poses, Vg, Fg),
+        )  # fmt: skip
+        log.info(
+            "against %s: Chamfer %.2f mm, F-score@2mm %.3f, F-score@5mm %.3f", gt_path,
+            ev["chamfer_mm"], ev["fscore@2mm"], ev["fscore@5mm"],
         )  # fmt: skip
     return report

@@ -1,8 +1,13 @@
-"""ICP-based position-based visual servoing (see docs/servo.md).
+"""ICP-based position-based visual servoing, the controller only (docs/servo.md, hardware.md):
 
-- `icp`: the four ICP variants behind one interface, compiled (numba), built once per reference;
-- `pbvs`: the PBVS error, interaction matrix, control law (constant or adaptive gain, saturation)
-  and the kinematic initial guess (paper eqs. 6-8, 11);
-- `step`: `Servo`, one call per frame from a cloud or depth image to a camera twist, with the
-  safety rules that command zero velocity when the alignment is not trusted.
+- `config`: every servo setting, declared once (`Limits`, `CommandLimits`, `SafetyConfig`,
+  `ServoConfig`, `LoopConfig`, `RunnerConfig`);
+- `pbvs`: the PBVS error, interaction matrix, control law and kinematic guess (eqs. 6-8, 11);
+- `step`: `Servo`, one call per frame from a depth image to a camera twist, with the trust
+  rules that command zero velocity when the alignment is not trusted; `make_servo`;
+- `loop`: `run_loop`, the one loop for simulation and hardware, and its cycle log;
+- `robot`: the robot interface with its command guard and watchdog, and the Franka adapter;
+- `rendered_camera`: a D405 rendered from the twin at a robot's pose (the simulator's camera
+  and a stand-in camera for bringing up a robot link);
+- `runner`: `vinetwin servo` (`run_pose`).
 """

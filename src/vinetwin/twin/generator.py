@@ -20,11 +20,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vinetwin.frames import Array
 from vinetwin.twin.skeleton import Branch, CutCandidate, Skeleton
+
+if TYPE_CHECKING:
+    from vinetwin.twin.model import Twin
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -201,3 +206,23 @@ def generate_vine(seed: int = 0, params: VineParams | None = None) -> Skeleton:
                 n_cane += 1
             pos += rng.uniform(*p.spur_spacing)
     return sk
+
+
+def sample_twin(
+    out: str | Path,
+    seed: int = 0,
+    *,
+    cordons: int = 2,
+    edge: float = 0.002,
+    cut_points: int = 4,
+    overwrite: bool = False,
+) -> Twin:
+    """`vinetwin sample`: a procedural vine (`generate_vine`) written as a twin folder, its first
+    `cut_points` candidates made cut points with default pruning poses."""
+    from vinetwin.twin.model import twin_from_skeleton
+
+    sk = generate_vine(seed, VineParams(cordons=cordons))
+    source = {"generator": "vinetwin.twin.generator", "seed": seed, "cordons": cordons}
+    return twin_from_skeleton(
+        out, sk, edge=edge, source=source, cut_points=cut_points, overwrite=overwrite
+    )

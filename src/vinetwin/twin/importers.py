@@ -19,13 +19,16 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from vinetwin.errors import ImportFormatError
 from vinetwin.frames import Array
 from vinetwin.twin.skeleton import Branch, BranchKind, CutCandidate, Skeleton
+
+if TYPE_CHECKING:
+    from vinetwin.twin.model import Twin
 
 SkeletonFormat = Literal["hydroshoot", "cylinders"]
 
@@ -305,3 +308,23 @@ def read_cylinders(path: str | Path) -> Skeleton:
         sk.branches.append(Branch(pts, r, kind="branch", label=f"cyl{i + 1}-{j + 1}"))
         i = j + 1
     return sk
+
+
+def import_twin(
+    path: str | Path,
+    out: str | Path,
+    fmt: SkeletonFormat | Literal["auto"] = "auto",
+    *,
+    edge: float = 0.003,
+    cut_points: int = 0,
+    overwrite: bool = False,
+) -> Twin:
+    """`vinetwin import-vine`: a skeleton file (format detected with "auto") meshed and written
+    as a twin folder, its first `cut_points` candidates made cut points with pruning poses."""
+    from vinetwin.twin.model import twin_from_skeleton
+
+    kind = detect_format(path) if fmt == "auto" else fmt
+    return twin_from_skeleton(
+        out, load_skeleton(path, kind), edge=edge, caps="round" if kind == "hydroshoot" else "flat",
+        source={"importer": kind, "file": str(path)}, cut_points=cut_points, overwrite=overwrite,
+    )  # fmt: skip

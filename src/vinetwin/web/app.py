@@ -427,12 +427,21 @@ def serve(root: str | Path, host: str = "127.0.0.1", port: int = 8080) -> App:
     return app
 
 
-def serve_folder(root: str | Path | None, host: str = "127.0.0.1", port: int = 8080) -> App:
+def serve_folder(
+    root: str | Path | None, host: str = "127.0.0.1", port: int = 8080, forever: bool = False
+) -> App:
     """`vinetwin web`: serves the twin at `root`, or, without one, a copy of the bundled sample
-    in out/web (made once, then edited in place)."""
+    in out/web (made once, then edited in place); with `forever`, until interrupted."""
     if root is None:
         from vinetwin.twin.model import copy_bundled_sample
 
         root = copy_bundled_sample(Path("out") / "web")
         log.info("no twin given: editing a copy of the bundled sample in %s", root)
-    return serve(root, host, port)
+    app = serve(root, host, port)
+    if forever:
+        import time
+
+        print(f"vinetwin web: open http://{host}:{port} (Ctrl-C stops)", flush=True)
+        while True:
+            time.sleep(3600)
+    return app

@@ -1,0 +1,7 @@
+"""Point-cloud registration, shared by the servo and the reconstruction:
+
+- `icp`: the paper's four ICP variants (point-to-point, LM, point-to-plane, symmetric) behind
+  one interface (`ICP(reference, ICPConfig(...)).align(current, T_init)` -> `ICPResult`), built
+  once per reference, coarse to fine, with the failure checks a servo needs;
+- `_kernels`: their compiled (numba) inner loops and the nearest-neighbour tree.
+"""
