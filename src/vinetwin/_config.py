@@ -25,6 +25,15 @@ class JsonFields:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)  # type: ignore[arg-type]
 
+    def _nested_from_dicts(self) -> None:
+        """Rebuilds nested config fields given as dicts (as `Config(**other.to_dict())` passes
+        them); call from `__post_init__`."""
+        hints = _hints(type(self))
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            v, t = getattr(self, f.name), hints.get(f.name)
+            if isinstance(v, dict) and isinstance(t, type) and issubclass(t, JsonFields):
+                object.__setattr__(self, f.name, t.from_dict(v))
+
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Self:
         """The dataclass from `to_dict`'s output; nested config dataclasses are rebuilt from

@@ -1,7 +1,6 @@
-"""The `vinetwin` command: argument definitions and calls, nothing else. Each subcommand is a
-frozen dataclass parsed by tyro; where the library has a config dataclass, the command nests it
-(flags without a prefix), so every setting has one declaration and one default, in the library.
-`run()` imports what it needs, so `vinetwin --help` stays fast."""
+"""The `vinetwin` command: argument definitions and calls. Each subcommand is a dataclass parsed
+by tyro that nests the library's config dataclasses (flags without a prefix): every setting has
+one declaration and one default, in the library. `run()` imports lazily: `--help` stays fast."""
 
 from __future__ import annotations
 
@@ -427,13 +426,13 @@ COMMANDS: dict[str, type] = {
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `vinetwin` command; returns the exit status."""
-    cmd = tyro.extras.subcommand_cli_from_dict(
-        COMMANDS,
-        args=sys.argv[1:] if argv is None else argv,
-        description="vinetwin: reference clouds and digital twins for robotic vine pruning.",
-    )
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
+    try:  # a config dataclass refuses a bad value while the arguments are parsed
+        cmd = tyro.extras.subcommand_cli_from_dict(
+            COMMANDS,
+            args=sys.argv[1:] if argv is None else argv,
+            description="vinetwin: reference clouds and digital twins for robotic vine pruning.",
+        )
         cmd.run()
     except VinetwinError as exc:
         log.error("%s", exc)
@@ -441,6 +440,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         log.error("interrupted")
         return 130
+    except SystemExit as exc:  # --help, or tyro's named error for a refused value
+        return exc.code if isinstance(exc.code, int) else 2
     return 0
 
 

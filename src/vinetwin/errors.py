@@ -34,6 +34,10 @@ class TwinFieldError(TwinError):
         super().__init__(f"{path}: field '{field}': {message}")
 
 
+class TwinConflictError(TwinError):
+    """A save would overwrite a change another writer saved to the same field of twin.json."""
+
+
 class TwinVersionError(TwinError):
     """twin.json was written by a newer format version than this vinetwin can read."""
 

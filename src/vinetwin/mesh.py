@@ -20,10 +20,10 @@ def check_mesh_arrays(V: Any, F: Any, where: str) -> None:
     indexing missing vertices."""
     V = np.asarray(V)
     F = np.asarray(F)
-    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
-        raise MeshError(f"{where}: mesh vertices must have shape (V, 3) with V > 0, got {V.shape}")
     if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
         raise MeshError(f"{where}: mesh has no triangle faces (faces shape {F.shape})")
+    if V.ndim != 2 or V.shape[1] != 3 or len(V) == 0:
+        raise MeshError(f"{where}: mesh vertices must have shape (V, 3) with V > 0, got {V.shape}")
     if not np.all(np.isfinite(V)):
         raise MeshError(
             f"{where}: mesh has {int((~np.isfinite(V)).any(1).sum())} non-finite vertices"

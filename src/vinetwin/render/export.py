@@ -52,7 +52,7 @@ from vinetwin.render.reference import (
     write_ply,
 )
 from vinetwin.render.sensor import SensorConfig
-from vinetwin.twin.model import Twin
+from vinetwin.twin.model import Twin, check_id
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +132,7 @@ def _run_job(job: _Job) -> PoseResult:
         warning = "" if len(ref.cloud) else "the view sees nothing: empty reference cloud"
         meta = {
             **job.meta,
+            "files_sha256": reference_hashes(out, job.pose_id),
             "points": len(ref.cloud),
             "has_normals": ref.cloud.normals is not None,
             "valid_depth_pixels": int((ref.depth > 0).sum()),
@@ -163,9 +164,37 @@ def _store(folder: Path) -> JobStore:
     )
 
 
+def reference_hashes(folder: Path, pose_id: str) -> dict[str, str]:
+    """The SHA-256 of a reference's cloud files (`ply`, `pcd`), as its sidecar records them."""
+    return {ext: file_sha256(folder / f"{pose_id}.{ext}") for ext in ("ply", "pcd")}
+
+
+def check_reference_files(folder: Path, pose_id: str) -> str:
+    """Why the reference's cloud files are not the ones its sidecar recorded ("" when they
+    are): missing, truncated or changed since export."""
+    sidecar = _store(folder).read(pose_id)
+    if sidecar is None:
+        return f"{folder / pose_id}.json: no readable sidecar"
+    want = sidecar.get("files_sha256")
+    if not isinstance(want, dict):
+        return f"{folder / pose_id}.json records no file hashes (exported by an older vinetwin)"
+    for ext in ("ply", "pcd"):
+        path = folder / f"{pose_id}.{ext}"
+        if not path.exists():
+            return f"{path} is missing"
+        if file_sha256(path) != want.get(ext):
+            return f"{path} does not match the hash its sidecar recorded (truncated or changed)"
+    return ""
+
+
 def _is_current(out: Path, pose_id: str, digest: str) -> bool:
     companions = [out / f"{pose_id}.ply", out / f"{pose_id}.pcd"]
-    return _store(out).current(pose_id, digest, companions) is not None
+    if _store(out).current(pose_id, digest, companions) is None:
+        return False
+    problem = check_reference_files(out, pose_id)
+    if problem:
+        log.warning("%s: rendering it again", problem)
+    return not problem
 
 
 def plan_export(
@@ -185,6 +214,8 @@ def plan_export(
     sensor = sensor or SensorConfig()
     ids = list(pose_ids) if pose_ids else [p.id for p in twin.poses]
     poses = [twin.pose(i) for i in ids]  # raises TwinError naming an unknown id
+    for p in poses:  # ids name the files written: never a path out of the folder
+        check_id(p.id, "pose id")
     load_mesh(twin.mesh_path)  # refuse a bad mesh once, before any worker starts
     mesh_sha = file_sha256(twin.mesh_path)
     out = twin.references_dir

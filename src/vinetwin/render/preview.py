@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from vinetwin.errors import InputError
 from vinetwin.render.reference import Reference
 
 if TYPE_CHECKING:
@@ -26,6 +27,12 @@ def preview_pose(
     from vinetwin.render.reference import pose_seed, render_reference
     from vinetwin.render.sensor import SensorConfig
 
+    out = Path(out)
+    if out.suffix.lower() != ".png":
+        raise InputError(f"--out must name a .png file, got {out}")
+    if out.exists() and out.is_dir():
+        raise InputError(f"--out {out} is a folder; name a .png file")
+    out.parent.mkdir(parents=True, exist_ok=True)
     pose = twin.pose(pose_id)
     mesh = twin.load_mesh()
     renderer = get_backend(backend, mesh.vertices, mesh.faces, twin.camera)

@@ -100,6 +100,8 @@ def read_reference_cloud(path: Path) -> Cloud:
         raise VinetwinError(f"{path}: reference cloud does not exist; run `vinetwin export`")
     pc = o3d.io.read_point_cloud(str(path))
     pts = np.asarray(pc.points, dtype=np.float64)
+    if len(pts) == 0 or not np.all(np.isfinite(pts)):
+        raise VinetwinError(f"{path}: no points, or non-finite ones: not a usable reference cloud")
     nrm = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
     return Cloud(pts, nrm)
 

@@ -143,11 +143,21 @@ class LoopConfig(JsonFields):
     """End the run when no frame came for this long (s)."""
     max_cycle: float = 0.1
     """A frame whose command comes later than this after its capture (stamp) sends zero
-    instead; 0: no check (simulation, where time is simulated)."""
+    instead (s, > 0). The simulation, whose time is simulated, does not check it."""
 
     def __post_init__(self) -> None:
-        if self.frame_timeout <= 0 or self.camera_lost < self.frame_timeout:
-            raise InputError("frame_timeout must be positive and camera_lost >= frame_timeout")
+        for name in ("frame_timeout", "camera_lost", "max_cycle"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"{name} must be positive and finite, got {v}")
+        for name in ("duration", "settle"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"{name} must be >= 0 and finite, got {v}")
+        if self.max_frames < 0:
+            raise InputError(f"max_frames must be >= 0, got {self.max_frames}")
+        if self.camera_lost < self.frame_timeout:
+            raise InputError("camera_lost must be >= frame_timeout")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -193,3 +203,6 @@ class RunnerConfig(JsonFields):
     Franka or bench tests."""
     seed: int = 0
     """Seed of the simulated start, noise and registration error."""
+
+    def __post_init__(self) -> None:
+        self._nested_from_dicts()

@@ -157,12 +157,14 @@ def run_loop(
     *,
     log: CycleLog | None = None,
     on_cycle: Callable[[Cycle], dict[str, Any] | bool | None] | None = None,
+    check_latency: bool = True,
 ) -> LoopSummary:
     """Runs the servo until the goal is held, the frames end or a limit is reached.
 
     `robot` None: no robot (replay of frames that carry their recorded pose; nothing is sent).
     `on_cycle(cycle)` may return a dict of extra fields for the cycle's log record (with
-    "end_run": True to end the run after this cycle), or True to end it."""
+    "end_run": True to end the run after this cycle), or True to end it. `check_latency`
+    False: no overrun check (the simulation, where the source's time is simulated)."""
     cfg = config or LoopConfig()
     summary = LoopSummary()
     cycles_ms: list[float] = []
@@ -197,7 +199,7 @@ def run_loop(
             )
             r = servo.step_depth(frame.depth, frame.stamp, T_base_camera, now=source.now())
             latency = source.now() - frame.stamp  # capture to command
-            overrun = cfg.max_cycle > 0 and latency > cfg.max_cycle
+            overrun = check_latency and latency > cfg.max_cycle
             twist = np.zeros(6) if overrun else r.twist
             sent = np.zeros(6)
             if send:

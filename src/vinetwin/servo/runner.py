@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,6 +57,8 @@ class Session:
     true_error: Callable[[], list[float]] | None = None
     """The true camera error now (simulation only), logged with each cycle."""
     header: dict[str, Any] = field(default_factory=dict)
+    check_latency: bool = True
+    """False in simulated time: no overrun check."""
 
     def close(self) -> None:
         if self.robot is not None:
@@ -65,10 +68,14 @@ class Session:
 
 def reference_cloud(twin: Twin, pose_id: str) -> Cloud:
     """The pose's exported reference cloud, or one rendered now with the twin's settings."""
+    from vinetwin.render.export import check_reference_files
     from vinetwin.render.reference import read_reference_cloud
 
     path = twin.references_dir / f"{pose_id}.ply"
     if path.exists():
+        problem = check_reference_files(twin.references_dir, pose_id)
+        if problem:
+            raise InputError(f"refusing reference {path}: {problem}; run `vinetwin export` again")
         return read_reference_cloud(path)
     log.warning("%s: not exported; rendering the reference with the twin's settings", path)
     from vinetwin.render.backends import get_backend
@@ -168,6 +175,10 @@ def run_pose(
     camera (`cfg.camera == "sim"`) needs `simulator`: `vinetwin.sim.rig.simulated_session`."""
     pose = twin.pose(cfg.pose) if cfg.pose else twin.poses[0]
     robot_kind = _check_combination(cfg)
+    path = Path(log_path) if log_path else default_log_path(twin, pose.id)
+    _check_writable(path, "--log", folder=False)  # before any robot or camera is opened
+    if record is not None:
+        _check_writable(Path(record), "--record", folder=True)
     if cfg.camera == "sim":
         if simulator is None:
             raise InputError(
@@ -199,7 +210,6 @@ def run_pose(
                 record, session.source.camera, session.source.depth_unit,
                 extra={"provenance": {"servo": header}, "T_flange_camera": header["T_flange_camera"]},
             )  # fmt: skip
-        path = Path(log_path) if log_path else default_log_path(twin, pose.id)
         cycle_log = CycleLog(path, **header)
         truth = session.true_error
 
@@ -212,6 +222,7 @@ def run_pose(
             summary = run_loop(
                 session.servo, session.source, session.robot if robot_kind != "none" else None,
                 session.loop, log=cycle_log, on_cycle=on_cycle,
+                check_latency=session.check_latency,
             )  # fmt: skip
         finally:
             cycle_log.close()
@@ -226,6 +237,20 @@ def true_error_of(source: Any, goal: Array) -> Callable[[], list[float]]:
     """The true error of a simulated camera (its `T_rel`, the camera relative to the possibly
     moved vine) against `goal`."""
     return lambda: list(pose_error(source.T_rel, goal))
+
+
+def _check_writable(path: Path, flag: str, folder: bool) -> None:
+    """Raises InputError naming `flag` unless `path` (a file, or a folder with `folder`) can be
+    written: its folder made and writable, and not a file where a folder goes or vice versa."""
+    target = path if folder else path.parent
+    try:
+        target.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{flag} {path}: cannot create {target}: {exc.strerror or exc}") from exc
+    if not os.access(target, os.W_OK):
+        raise InputError(f"{flag} {path}: {target} is not writable")
+    if not folder and path.is_dir():
+        raise InputError(f"{flag} {path} is a folder; name a file")
 
 
 def _check_camera(twin: Twin, source: CameraSource) -> None:

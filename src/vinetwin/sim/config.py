@@ -82,6 +82,7 @@ class SimConfig(ServoConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        self._nested_from_dicts()
         if not (self.camera_rate > 0 and self.duration > 0):
             raise InputError(
                 f"camera_rate and duration must be positive, got {self.camera_rate} and "
@@ -134,6 +135,7 @@ class CampaignConfig(JsonFields):
     """Processes; 0: one per core. With --ray: the local Ray's CPUs (0: all)."""
 
     def __post_init__(self) -> None:
+        self._nested_from_dicts()
         if self.preset not in PRESETS:
             raise InputError(f"unknown preset '{self.preset}'; choose one of: {', '.join(PRESETS)}")
         _check_variants(self.variants)
@@ -167,6 +169,7 @@ class ValidateConfig(JsonFields):
     """Run again what is already validated with the same inputs."""
 
     def __post_init__(self) -> None:
+        self._nested_from_dicts()
         _check_variants(self.variants)
         if self.starts < 1:
             raise InputError(f"starts must be >= 1, got {self.starts}")

@@ -186,7 +186,7 @@ def simulate(
     wall0 = time.perf_counter()
     try:
         run_loop(
-            servo, source, robot, LoopConfig(settle=0.0, max_cycle=0.0), log=log,
+            servo, source, robot, LoopConfig(settle=0.0), log=log, check_latency=False,
             on_cycle=on_cycle,
         )  # fmt: skip
     finally:

@@ -32,7 +32,7 @@ from vinetwin.sim.config import SimConfig, ValidateConfig
 from vinetwin.sim.rig import start_pose
 from vinetwin.sim.simulate import simulate
 from vinetwin.sim.workers import run_jobs, twin_context, worker_backend
-from vinetwin.twin.model import Twin
+from vinetwin.twin.model import Twin, check_id
 
 VALIDATION_FORMAT = 1
 
@@ -184,7 +184,7 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
     """The groups to run and the results already current on disk."""
     pose_ids = _pose_ids(twin, cfg)
     for pid in pose_ids:
-        twin.pose(pid)  # unknown ids fail here, before any work
+        check_id(twin.pose(pid).id, "pose id")  # unknown or unsafe ids fail before any work
     store = _store(twin).open()  # removes what writers killed in an earlier run left
     mesh_sha = file_sha256(twin.mesh_path)
     ctx = twin_context(twin)

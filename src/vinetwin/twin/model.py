@@ -18,11 +18,14 @@ so a crash during a save leaves the previous file intact.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
+import logging
 import math
+import os
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -35,6 +38,7 @@ from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
 from vinetwin.errors import (
     CameraError,
     InputError,
+    TwinConflictError,
     TwinError,
     TwinFieldError,
     TwinVersionError,
@@ -48,10 +52,21 @@ from vinetwin.twin.skeleton import Skeleton
 if TYPE_CHECKING:
     import trimesh
 
+log = logging.getLogger(__name__)
+
 FORMAT_NAME = "vinetwin-twin"
 FORMAT_VERSION = 1
 TWIN_FILE = "twin.json"
-_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_ID_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
+
+
+def check_id(value: Any, what: str = "id") -> str:
+    """`value` if it is a valid cut point or pose id: 1-64 letters, digits, `_` or `-`, nothing
+    else (ids name files: `references/ID.ply`, `validation/ID.VARIANT.json`); else InputError."""
+    if not isinstance(value, str) or not _ID_RE.fullmatch(value):
+        raise InputError(f"{what} must match [A-Za-z0-9_-]{{1,64}}, got {value!r}")
+    return value
+
 
 #: Default hand-eye transform: a D405 on the Panda hand, 5 cm off the flange axis and 4 cm along
 #: it, looking along the flange's +Z. Replace it with your calibration.
@@ -89,7 +104,7 @@ class _Fields:
     def ident(self, data: dict[str, Any], where: str) -> str:
         """The entry's `id`: a name that is safe as a file name."""
         v = self.string(data, "id", where)
-        if not _ID_RE.match(v):
+        if not _ID_RE.fullmatch(v):
             raise self.fail(f"{where}id", f"must match [A-Za-z0-9_-]{{1,64}}, got {v!r}")
         return v
 
@@ -263,6 +278,7 @@ _TOP_KEYS = {
     "pruning_poses",
     "perception",
     "provenance",
+    "revision",
 }
 
 
@@ -283,6 +299,10 @@ class Twin:
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
     provenance: dict[str, Any] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
+    revision: int = 0
+    """How many times twin.json was saved; checked by `save` (a stale copy merges)."""
+    _base: dict[str, Any] | None = field(default=None, repr=False, compare=False)
+    """twin.json as this copy last read or wrote it (normalised), the base of a merge."""
 
     # ------------------------------------------------------------------ paths
     @property
@@ -320,8 +340,12 @@ class Twin:
         Refuses to write into a folder that already holds a twin.json unless `overwrite`.
         """
         root = Path(root)
+        if root.exists() and not root.is_dir():
+            raise TwinError(f"{root}: is a file, not a folder; choose another --out")
         if (root / TWIN_FILE).exists() and not overwrite:
-            raise TwinError(f"{root}: already holds a twin; pass overwrite=True to replace it")
+            raise TwinError(
+                f"{root}: already holds a twin; pass --overwrite (overwrite=True) to replace it"
+            )
         V = np.asarray(vertices, dtype=np.float64)
         F = np.asarray(faces)
         check_mesh_arrays(V, F, str(root))
@@ -331,6 +355,8 @@ class Twin:
         if skeleton is not None:
             twin.skeleton_file = "skeleton.json"
             atomic_write_text(root / "skeleton.json", json.dumps(skeleton.to_json()))
+        old = _read_saved(root) if overwrite else None
+        twin.revision = int(old["revision"]) if old else 0  # replaced, not merged
         twin.provenance = {
             "created_by": f"vinetwin {vinetwin.__version__}",
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
@@ -392,8 +418,16 @@ class Twin:
         if not (root / mesh_file).exists():
             raise f.fail("mesh", f"file '{mesh_file}' does not exist in {root}")
         skel = data.get("skeleton")
-        if skel is not None and (not isinstance(skel, str) or not (root / skel).exists()):
+        if skel is not None and (
+            not isinstance(skel, str)
+            or Path(skel).is_absolute()
+            or ".." in Path(skel).parts
+            or not (root / skel).exists()
+        ):
             raise f.fail("skeleton", f"must name a file in the twin folder, got {skel!r}")
+        revision = data.get("revision", 0)
+        if isinstance(revision, bool) or not isinstance(revision, int) or revision < 0:
+            raise f.fail("revision", f"must be an integer >= 0, got {revision!r}")
 
         cam_data = f.obj(f.req(data, "camera", ""), "camera")
         for key in ("width", "height"):
@@ -436,8 +470,9 @@ class Twin:
         prov = data.get("provenance", {})
         if not isinstance(prov, dict):
             raise f.fail("provenance", "must be an object")
-        return cls(
+        twin = cls(
             root=root,
+            revision=revision,
             name=f.string(data, "name", "", default=root.name),
             mesh_file=mesh_file,
             skeleton_file=skel,
@@ -450,12 +485,15 @@ class Twin:
             provenance=prov,
             extra={k: v for k, v in data.items() if k not in _TOP_KEYS},
         )
+        twin._base = twin.to_json()
+        return twin
 
     def to_json(self) -> dict[str, Any]:
         return {
             **self.extra,
             "format": FORMAT_NAME,
             "format_version": FORMAT_VERSION,
+            "revision": self.revision,
             "units": "m",
             "name": self.name,
             "mesh": self.mesh_file,
@@ -470,15 +508,45 @@ class Twin:
         }
 
     def save(self) -> None:
-        """Writes twin.json atomically (temporary file, fsync, rename)."""
+        """Writes twin.json atomically (temporary file, fsync, rename), one revision up.
+
+        Nothing another writer saved is lost: when twin.json was saved by someone else since
+        this copy read it (its revision moved on), the two are merged against what this copy
+        read, entity by entity and field by field (cut points and poses by id). Changes that do
+        not touch the same field are both kept, and this copy is updated to the merged twin;
+        two different changes of one field raise `TwinConflictError` naming it, and nothing is
+        written. The content is validated first (ids, references between entities): a twin
+        that would not load again is not saved."""
         if not self.root.is_dir():
             raise TwinError(f"{self.root}: twin folder does not exist")
-        text = json.dumps(self.to_json(), indent=1)
+        ours = self.to_json()
+        Twin.from_json(self.root, ours, self.json_path)  # refuse what would not load
         remove_orphan_temp_files(self.root)
-        try:
-            atomic_write_text(self.json_path, text + "\n")
-        except OSError as exc:
-            raise TwinError(f"{self.json_path}: cannot save: {exc}") from exc
+        with _save_lock(self.root):
+            theirs = _read_saved(self.root)
+            merged, fresh = ours, None
+            if theirs is not None and theirs.get("revision") != self.revision:
+                merged = merge_twin_json(self._base or {}, ours, theirs, str(self.json_path))
+            merged["revision"] = max(self.revision, int((theirs or {}).get("revision", 0))) + 1
+            if merged is not ours:  # the merge must still be a twin
+                fresh = Twin.from_json(self.root, merged, self.json_path)
+            try:
+                atomic_write_text(self.json_path, json.dumps(merged, indent=1) + "\n")
+            except OSError as exc:
+                raise TwinError(f"{self.json_path}: cannot save: {exc}") from exc
+        if fresh is not None:
+            self.__dict__.update(fresh.__dict__)
+        else:
+            self.revision = merged["revision"]
+        self._base = self.to_json()
+
+    def restored(self, data: dict[str, Any]) -> Twin:
+        """A copy holding `data` (an earlier `to_json` of this twin: an undo) as an edit of
+        this copy, so that saving it replaces what this copy last saved (merged with what
+        others saved since, like any edit)."""
+        twin = Twin.from_json(self.root, data, self.json_path)
+        twin.revision, twin._base = self.revision, self._base
+        return twin
 
     # ------------------------------------------------------------------ content
     def load_mesh(self) -> trimesh.Trimesh:
@@ -665,3 +733,94 @@ def copy_bundled_sample(folder: str | Path, replace: bool = False) -> Path:
         Path(folder).mkdir(parents=True, exist_ok=True)
         shutil.copytree(src, dst)
     return dst
+
+
+# ----------------------------------------------------------------------------- concurrent saves
+_MISSING: Any = object()
+
+
+@contextlib.contextmanager
+def _save_lock(root: Path) -> Iterator[None]:
+    """An exclusive lock on the twin folder while it is read back and written (`flock` on
+    `.twin.lock`: released by the kernel if the process dies)."""
+    import fcntl
+
+    fd = os.open(root / ".twin.lock", os.O_CREAT | os.O_RDWR, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _read_saved(root: Path) -> dict[str, Any] | None:
+    """twin.json as saved now, normalised like `Twin.to_json`; None when there is none or it
+    cannot be read (nothing to merge with: it is replaced)."""
+    if not (root / TWIN_FILE).exists():
+        return None
+    try:
+        return Twin.load(root).to_json()
+    except TwinError as exc:
+        log.warning("%s: replacing a twin.json that does not load: %s", root, exc)
+        return None
+
+
+def merge_twin_json(
+    base: dict[str, Any], ours: dict[str, Any], theirs: dict[str, Any], where: str = TWIN_FILE
+) -> dict[str, Any]:
+    """Three-way merge of twin.json contents: `ours` and `theirs` both derive from `base`.
+    Cut points and pruning poses are matched by id and merged field by field; every other
+    top-level field as a whole. A field changed on one side takes that side's value (a deleted
+    entity stays deleted unless the other side changed it); the same field changed differently
+    on both sides raises `TwinConflictError`."""
+    out: dict[str, Any] = {}
+    for key in dict.fromkeys([*theirs, *ours]):
+        if key == "revision":
+            continue
+        if key in ("cut_points", "pruning_poses"):
+            out[key] = _merge_entities(
+                base.get(key, []), ours.get(key, []), theirs.get(key, []), f"{where}: {key}"
+            )
+            continue
+        v = _pick(base.get(key, _MISSING), ours.get(key, _MISSING), theirs.get(key, _MISSING),
+                  f"{where}: field '{key}'")  # fmt: skip
+        if v is not _MISSING:
+            out[key] = v
+    return out
+
+
+def _pick(b: Any, o: Any, t: Any, where: str) -> Any:
+    if o == t:
+        return o
+    if o == b:
+        return t
+    if t == b:
+        return o
+    raise TwinConflictError(
+        f"{where} was changed here and, differently, by another save since this copy was "
+        "loaded; load the twin again and redo this change"
+    )
+
+
+def _merge_entities(
+    base: list[dict[str, Any]], ours: list[dict[str, Any]], theirs: list[dict[str, Any]], where: str
+) -> list[dict[str, Any]]:
+    b, o, t = ({e["id"]: e for e in side} for side in (base, ours, theirs))
+    merged = []
+    for eid in dict.fromkeys([*t, *o]):
+        be: Any = b.get(eid, _MISSING)
+        oe: Any = o.get(eid, _MISSING)
+        te: Any = t.get(eid, _MISSING)
+        e: Any
+        if _MISSING in (be, oe, te):  # added or deleted on one side
+            e = _pick(be, oe, te, f"{where} '{eid}'")
+        else:  # on both sides: field by field
+            e = {}
+            for key in dict.fromkeys([*te, *oe]):
+                v = _pick(be.get(key, _MISSING), oe.get(key, _MISSING), te.get(key, _MISSING),
+                          f"{where} '{eid}' field '{key}'")  # fmt: skip
+                if v is not _MISSING:
+                    e[key] = v
+        if e is not _MISSING:
+            merged.append(e)
+    return merged

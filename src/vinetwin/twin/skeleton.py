@@ -278,6 +278,11 @@ def _fan(ring: np.ndarray, apex: int, end: int) -> np.ndarray:
     return np.column_stack([ring, ap, j1])
 
 
+#: Tube mesh edge lengths accepted (m): finer runs out of memory on a whole vine, coarser loses
+#: the canes' shape.
+MIN_EDGE, MAX_EDGE = 0.0005, 0.05
+
+
 def tube_mesh(
     skeleton: Skeleton | list[Branch],
     edge: float = 0.002,
@@ -292,6 +297,10 @@ def tube_mesh(
         caps: "round" (hemispheres, a swept-sphere body) or "flat" ends.
         max_sagitta: the polygonal cross-section stays within this distance (m) of the circle.
     """
+    if not (math.isfinite(edge) and MIN_EDGE <= edge <= MAX_EDGE):
+        raise InputError(
+            f"the mesh edge length must be between {MIN_EDGE} and {MAX_EDGE} m, got {edge}"
+        )
     branches = skeleton.branches if isinstance(skeleton, Skeleton) else skeleton
     if not branches:
         raise InputError("the skeleton has no branches")

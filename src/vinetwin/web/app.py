@@ -421,7 +421,15 @@ class App:
 
 
 def serve(root: str | Path, host: str = "127.0.0.1", port: int = 8080) -> App:
-    """Starts the app (returns at once; the server runs in its own threads)."""
+    """Starts the app (returns at once; the server runs in its own threads). Any host but a
+    loopback address exposes the editor, which has no authentication, to the network: that is
+    allowed, with a warning."""
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        log.warning(
+            "listening on %s: anyone who can reach this machine on port %d can edit and save %s "
+            "(the app has no authentication); use --host 127.0.0.1 unless the network is yours",
+            host, port, root,
+        )  # fmt: skip
     app = App(root, host, port)
     log.info("vinetwin web on http://%s:%d  (twin %s)", host, port, root)
     return app

@@ -186,7 +186,7 @@ class AuthoringSession:
         if not source:
             return False
         target.append(copy.deepcopy(twin.to_json()))
-        self.twin = Twin.from_json(twin.root, source.pop())
+        self.twin = twin.restored(source.pop())
         ids = [p.id for p in self.twin.poses]
         if self.selected not in ids:
             self.selected = ids[-1] if ids else ""
