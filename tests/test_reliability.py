@@ -311,3 +311,48 @@ def test_the_architecture_issue_left_no_second_speed_default() -> None:
         ValidateConfig().limits,
     ):
         assert (cfg.max_linear, cfg.max_angular) == (0.05, 0.25)
+
+
+# ----------------------------------------------------------------------------- fault injection
+#: the refusal each frame fault must cause
+EXPECTED_REFUSAL = {
+    "stall": "stale frame",
+    "zero": "empty frame",
+    "nan": "empty frame",
+    "half_nan": "corrupt depth image",
+    "stale": "stale frame",
+    "duplicate": "stale frame",
+    "jerk": "pose jump",
+}
+
+
+@pytest.mark.parametrize(
+    "cls",
+    ["drop", "stall", "zero", "nan", "half_nan", "stale", "duplicate", "jerk", "leaf",
+     "lost_command"],
+)  # fmt: skip
+def test_injected_faults_never_move_the_arm_on_an_untrusted_frame(vine_views, cls: str) -> None:  # type: ignore[no-untyped-def]
+    from vinetwin.render.reference import pose_seed
+    from vinetwin.sim.config import FaultConfig, SimConfig
+    from vinetwin.sim.rig import start_pose
+    from vinetwin.sim.simulate import simulate
+
+    twin = vine_views.twin
+    pose = twin.poses[0]
+    cut = twin.cut_point(pose.cut_point).point
+    start = start_pose(
+        pose.T_vine_camera, cut, 0.02, 0.05, np.random.default_rng(0), twin.camera, 0.4
+    )
+    faults = FaultConfig(classes=(cls,), rate=0.25 if cls != "jerk" else 0.4, seed=3)
+    cfg = SimConfig(duration=2.5, settle=0.0, fixed_period=1 / 30, faults=faults)
+    run = simulate(vine_views.backend, pose.T_vine_camera, start, pose_seed(0, pose.id),
+                   twin.perception, cfg)  # fmt: skip
+    f = run.summary()["faults"]
+    assert f["commands_over_limit"] == 0 and f["motion_on_untrusted"] == 0, f
+    events = f["classes"][cls]["events"]
+    assert events >= 2, f
+    assert f["classes"][cls]["recovered"] >= events - 1, f  # the last may fall at the very end
+    if cls in EXPECTED_REFUSAL:
+        assert EXPECTED_REFUSAL[cls] in run.reasons, run.reasons
+    if cls == "drop":
+        assert len(run.t) < 0.8 * 2.5 * 30  # frames went missing

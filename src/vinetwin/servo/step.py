@@ -118,6 +118,13 @@ class Servo:
             raise ValueError("step_depth needs the camera given to Servo(camera=...)")
         t0 = time.perf_counter()
         normals = self.icp_config.variant == "symmetric"
+        bad = _non_finite_share(depth)
+        if 0.0 < bad < 1.0:  # all non-finite: nothing survives perception, an empty frame
+            return self._refuse(
+                f"corrupt depth image: {100 * bad:.1f}% of its pixels are NaN or infinite (a "
+                "sensor reports no data as 0): the whole frame is refused",
+                stamp,
+            )
         try:
             cloud = perceive(depth, self.camera, self.perception, normals=normals)
         except Exception as exc:  # a malformed image is a refused frame, not a crash
@@ -286,3 +293,13 @@ def make_servo(
         goal_rotation=config.converged_rotation,
         guess=config.guess,
     )
+
+
+def _non_finite_share(depth: Any) -> float:
+    """The share of a float depth image's pixels that are NaN or infinite (0 for integers and
+    for what is not an array of numbers: perception names those)."""
+    d = np.asarray(depth)
+    if d.dtype.kind != "f" or d.size == 0:
+        return 0.0
+    finite = np.isfinite(d)
+    return 0.0 if finite.all() else float(1.0 - finite.mean())

@@ -45,6 +45,8 @@ class SimCameraSource(MeshCamera):
         """The camera in the vine's original frame at the last frame."""
         self.T_rel = np.eye(4)
         """The camera relative to the (possibly moved) vine at the last frame."""
+        self.vine_offset = np.eye(4)
+        """A rigid jump of the vine on top of the disturbance (fault injection's jerks)."""
 
     def read(self, timeout: float = 1.0) -> CameraFrame | None:
         if self._delivered is not None:
@@ -57,7 +59,7 @@ class SimCameraSource(MeshCamera):
             self.sim_robot.advance(hold)
         t = self.sim_robot.t
         self.T = invert(self.T_base_vine) @ self.robot.T_base_camera()
-        self.T_rel = invert(self.disturbance.vine_motion(t)) @ self.T
+        self.T_rel = invert(self.vine_offset @ self.disturbance.vine_motion(t)) @ self.T
         frame = self._frame(self.T_rel, t)
         self._delivered = time.perf_counter()
         return frame

@@ -33,7 +33,7 @@ from vinetwin.files import atomic_write_json, json_sha256, remove_orphan_temp_fi
 from vinetwin.jobstore import JobStore
 from vinetwin.render.reference import pose_seed
 from vinetwin.sim import report
-from vinetwin.sim.config import CampaignConfig, Disturbance, SimConfig
+from vinetwin.sim.config import CampaignConfig, Disturbance, FaultConfig, SimConfig
 from vinetwin.sim.paper import PRESETS
 from vinetwin.sim.rig import start_pose
 from vinetwin.sim.simulate import SimRun, simulate
@@ -141,6 +141,12 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
         long = replace(base, duration=max(cfg.duration, cfg.disturbance_time + 15.0))
         jobs += [
             job(f"disturbance/{v}", "disturbance", 0, replace(long, variant=v), d)
+            for v in cfg.variants
+        ]
+    for c in cfg.faults:  # one run per fault class and variant, from the first start
+        faults = FaultConfig(classes=(c,), rate=cfg.fault_rate, seed=cfg.seed)
+        jobs += [
+            job(f"faults/{c}/{v}", "faults", 0, replace(base, variant=v, faults=faults))
             for v in cfg.variants
         ]
     if cfg.guess_comparison:

@@ -18,6 +18,16 @@ from vinetwin.sim.paper import PRESETS
 if TYPE_CHECKING:
     from vinetwin.frames import Array
 
+#: Fault classes the simulation can inject (`sim.faults`).
+FaultClass = Literal[
+    "drop", "stall", "zero", "nan", "half_nan", "stale", "duplicate", "jerk", "leaf",
+    "lost_command",
+]  # fmt: skip
+FAULT_CLASSES: tuple[str, ...] = (
+    "drop", "stall", "zero", "nan", "half_nan", "stale", "duplicate", "jerk", "leaf",
+    "lost_command",
+)  # fmt: skip
+
 #: Every ICP variant, in the paper's order.
 ALL_VARIANTS: tuple[Variant, ...] = ("point_to_point", "lm", "point_to_plane", "symmetric")
 
@@ -57,6 +67,36 @@ class Disturbance(JsonFields):
 
 
 @dataclass(frozen=True, kw_only=True)
+class FaultConfig(JsonFields):
+    """Faults injected into a simulated run (`sim.faults`), each class seeded and switchable."""
+
+    classes: tuple[FaultClass, ...] = ()
+    """Fault classes to inject: drop, stall, zero, nan, half_nan, stale, duplicate, jerk, leaf,
+    lost_command (none: a clean run)."""
+    rate: float = 0.03
+    """Probability per camera frame of each class (jerks: a fifth of it)."""
+    stall: float = 0.2
+    """How late a stalled frame arrives (s)."""
+    jerk_translation: float = 0.01
+    """How far the vine jumps in a jerk (m)."""
+    jerk_rotation: float = 0.02
+    """How far it turns (rad)."""
+    leaf_frames: int = 15
+    """How many frames a leaf covers the view."""
+    seed: int = 0
+    """Seed of the faults (apart from the run's own)."""
+
+    def __post_init__(self) -> None:
+        for c in self.classes:
+            if c not in FAULT_CLASSES:
+                raise InputError(
+                    f"unknown fault class '{c}'; choose from: {', '.join(FAULT_CLASSES)}"
+                )
+        if not (0.0 <= self.rate <= 1.0):
+            raise InputError(f"fault rate must be within 0..1, got {self.rate}")
+
+
+@dataclass(frozen=True, kw_only=True)
 class SimConfig(ServoConfig):
     """One closed-loop run: the servo (`ServoConfig`: variant, gains, guess, goal tolerance),
     the camera's limits, and the simulated camera, time and registration error."""
@@ -79,6 +119,8 @@ class SimConfig(ServoConfig):
     """rad."""
     seed: int = 0
     """Seed of the starts, the noise and the registration error."""
+    faults: FaultConfig = field(default_factory=FaultConfig)
+    """Faults injected into the run (none by default)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -129,6 +171,11 @@ class CampaignConfig(JsonFields):
     """How far it turns (rotation vector, rad)."""
     guess_comparison: bool = True
     """Add point-to-plane runs with and without the kinematic initial guess (paper Fig. 4)."""
+    faults: tuple[FaultClass, ...] = ()
+    """Add a fault-injection run per listed class and variant (from the first start; classes:
+    drop, stall, zero, nan, half_nan, stale, duplicate, jerk, leaf, lost_command)."""
+    fault_rate: float = 0.03
+    """Probability per frame of the injected fault."""
     seed: int = 0
     """Seed of the starts, the noise and the registration error."""
     workers: int = 0
@@ -161,6 +208,10 @@ class ValidateConfig(JsonFields):
     """Longest simulated time per run (s)."""
     limits: Limits = field(default_factory=Limits)
     """Speed and acceleration limits of every run."""
+    faults: tuple[FaultClass, ...] = ()
+    """Fault classes injected into every run (see `campaign --faults`)."""
+    fault_rate: float = 0.03
+    """Probability per frame of each injected fault."""
     seed: int = 0
     """Seed of the starts and the noise."""
     workers: int = 0

@@ -104,6 +104,42 @@ def other_rows(data: dict[str, Any], group: str) -> list[dict[str, str]]:
     return rows
 
 
+FAULTS_NOTE = (
+    "One run per fault class and variant from start 1, the class injected with the configured "
+    "probability per frame (vinetwin.sim.faults). Commands over a limit: twists sent above the "
+    "speed limits (must be 0). Motion on untrusted: non-zero twists sent on a refused or overrun "
+    "frame (must be 0). Recovered: events followed by a trusted frame before the run ended; "
+    "recovery: the time from the event to that frame."
+)
+
+
+def fault_rows(data: dict[str, Any]) -> list[dict[str, str]]:
+    """One row per fault-injection run: what was injected, how the servo coped."""
+    rows = []
+    for r in data["runs"]:
+        if r["group"] != "faults":
+            continue
+        s, f = r["summary"], r["summary"].get("faults", {})
+        cls = r["key"].split("/")[1]
+        c = f.get("classes", {}).get(cls, {})
+        rows.append(
+            {
+                "fault": cls,
+                "variant": s["variant"],
+                "events": str(c.get("events", 0)),
+                "recovered": str(c.get("recovered", 0)),
+                "median recovery (s)": _fmt(c.get("median_recovery_s"), 1, 2),
+                "max recovery (s)": _fmt(c.get("max_recovery_s"), 1, 2),
+                "commands over a limit": str(f.get("commands_over_limit", "-")),
+                "motion on untrusted": str(f.get("motion_on_untrusted", "-")),
+                "final t (mm)": _fmt(s["final_translation"], 1000),
+                "converged": "yes" if s["converged"] else "no",
+                "refusals": ", ".join(f"{k} x{v}" for k, v in s["refusal_reasons"].items()) or "-",
+            }
+        )
+    return rows
+
+
 def _markdown_table(rows: list[dict[str, str]]) -> str:
     if not rows:
         return "(no runs)\n"
@@ -162,6 +198,9 @@ def write_report(data: dict[str, Any], out_dir: Path) -> None:
         ("guess", "With and without the initial guess"),
     ):
         md += [f"\n## {name}\n", _markdown_table(other_rows(data, group))]
+    faults = fault_rows(data)
+    if faults:
+        md += ["\n## Fault injection\n", FAULTS_NOTE + "\n", _markdown_table(faults)]
     md.append("\n## Figures\n")
     md += [f"![{cap}]({fn})\n\n{cap}\n" for fn, cap in FIGURES]
     atomic_write_text(out_dir / "report.md", "\n".join(md))
@@ -178,6 +217,9 @@ def write_report(data: dict[str, Any], out_dir: Path) -> None:
         ("guess", "With and without the initial guess"),
     ):
         parts += [f"<h2>{name}</h2>", _html_table(other_rows(data, group))]
+    if faults:
+        parts += ["<h2>Fault injection</h2>", f"<p>{html.escape(FAULTS_NOTE)}</p>"]
+        parts.append(_html_table(faults))
     parts.append("<h2>Figures</h2>")
     parts += [
         f"<figure><img src='{fn}' alt='{html.escape(cap)}'><figcaption>{html.escape(cap)}</figcaption></figure>"
@@ -298,6 +340,7 @@ def print_tables(data: dict[str, Any]) -> None:
         (table_rows(data), "starts x variants"),
         (other_rows(data, "disturbance"), "disturbance"),
         (other_rows(data, "guess"), "initial guess"),
+        (fault_rows(data), "fault injection"),
     ):
         if not rows:
             continue

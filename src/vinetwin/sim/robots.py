@@ -20,18 +20,36 @@ class SimulatedRobot(Robot):
     def __init__(self, T_flange_camera: Any, limits: CommandLimits | None = None) -> None:
         self.t = 0.0
         self._held = np.zeros(6)
+        self._received = 0.0
+        self.lose_next_command = False
+        """Fault injection: the next command (twist or stop) never arrives; the arm keeps its
+        previous twist until that one expires."""
+        self.expire_after: float | None = None
+        """A received twist is held at most this long (s), as a Franka's commands are; None:
+        until the next command (set with fault injection, where commands can be lost)."""
         super().__init__(T_flange_camera, limits, clock=lambda: self.t, watchdog_thread=False)
 
     def advance(self, dt: float) -> None:
         self.check_watchdog()
-        self._apply(self._held, dt)
+        run = dt
+        if self.expire_after is not None:
+            run = min(dt, max(0.0, self._received + self.expire_after - self.t))
+        if run > 0:
+            self._apply(self._held, run)
         self.t += dt
 
+    def _receive(self, twist: Array) -> None:
+        if self.lose_next_command:
+            self.lose_next_command = False
+            return
+        self._held = twist
+        self._received = self.t
+
     def _send(self, twist: Array) -> None:
-        self._held = twist.copy()
+        self._receive(twist.copy())
 
     def _halt(self) -> None:
-        self._held = np.zeros(6)
+        self._receive(np.zeros(6))
 
     @abstractmethod
     def _apply(self, twist: Array, dt: float) -> None: ...

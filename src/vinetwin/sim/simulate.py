@@ -65,6 +65,8 @@ class SimRun:
     compute: list[float] = field(default_factory=list)
     reasons: dict[str, int] = field(default_factory=dict)
     wall: float = 0.0
+    faults: dict[str, Any] | None = None
+    """With fault injection: what was injected and how the servo coped (`faults.fault_summary`)."""
 
     def summary(self) -> dict[str, Any]:
         cfg = self.config
@@ -102,6 +104,7 @@ class SimRun:
             "compute_ms": 1000 * float(np.median(self.compute)) if self.compute else math.nan,
             "wall_s": self.wall,
             "realtime_factor": sim_time / self.wall if self.wall > 0 else math.nan,
+            **({"faults": self.faults} if self.faults is not None else {}),
         }
 
     def series(self, step: int = 1) -> dict[str, Any]:
@@ -151,7 +154,16 @@ def simulate(
         backend, goal, start, ref, perception, cfg, rng, arm=arm, disturbance=dist,
         sensor=sensor, safety=safety,
     )  # fmt: skip
-    servo, source, robot = rig.servo, rig.source, rig.robot
+    servo, robot = rig.servo, rig.robot
+    source: Any = rig.source
+    faulty = None
+    if cfg.faults.classes:  # the cut: on the reference camera's axis at its standoff
+        from vinetwin.sim.faults import FaultySource
+
+        cut = goal[:3, 3] + 0.15 * goal[:3, 2]
+        source = faulty = FaultySource(rig.source, cfg.faults, cut)
+        robot.expire_after = robot.limits.watchdog  # commands expire, as a Franka's do
+    cycles: list[dict[str, Any]] = []
     writer = None
     if record is not None:
         writer = CaptureWriter(
@@ -160,7 +172,7 @@ def simulate(
     at_goal_since: list[float | None] = [None]
 
     def on_cycle(c: Cycle) -> dict[str, Any]:
-        r, t = c.result, c.frame.stamp
+        r, t = c.result, source.now()  # the frame's stamp, unless a fault made it late
         et, er = pose_error(source.T_rel, goal)
         run.t.append(t)
         run.T.append(source.T.copy())
@@ -171,6 +183,10 @@ def simulate(
         if not r.trusted:
             key = r.reason.split(":")[0]
             run.reasons[key] = run.reasons.get(key, 0) + 1
+        if faulty is not None:
+            cycles.append(
+                {"t": t, "trusted": r.trusted, "overrun": c.overrun, "sent": c.sent.tolist()}
+            )
         if writer is not None:
             writer.add(c.frame.counts, None, c.T_base_camera, t)
         end = t + 1e-9 >= cfg.duration
@@ -193,4 +209,8 @@ def simulate(
         if writer is not None:
             writer.close()
     run.wall = time.perf_counter() - wall0
+    if faulty is not None:
+        from vinetwin.sim.faults import fault_summary
+
+        run.faults = fault_summary(faulty.log, cycles, robot.limits, run.t[-1] if run.t else 0.0)
     return run

@@ -28,7 +28,7 @@ from vinetwin.executor import ExecutorConfig
 from vinetwin.files import atomic_write_json, atomic_write_text, file_sha256, json_sha256
 from vinetwin.jobstore import JobStore
 from vinetwin.render.reference import pose_seed
-from vinetwin.sim.config import SimConfig, ValidateConfig
+from vinetwin.sim.config import FaultConfig, SimConfig, ValidateConfig
 from vinetwin.sim.rig import start_pose
 from vinetwin.sim.simulate import simulate
 from vinetwin.sim.workers import run_jobs, twin_context, worker_backend
@@ -66,6 +66,7 @@ def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: Validate
             "radius": [cfg.radius_translation, cfg.radius_rotation],
             "duration": cfg.duration,
             "limits": cfg.limits.to_dict(),
+            "faults": [list(cfg.faults), cfg.fault_rate],
             "seed": cfg.seed,
         }
     )
@@ -207,7 +208,10 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
                            twin.camera, twin.perception.max_depth).tolist()
                 for f in fractions
             ]  # fmt: skip
-            sim = SimConfig(variant=v, duration=cfg.duration, limits=cfg.limits, seed=cfg.seed)
+            faults = FaultConfig(classes=cfg.faults, rate=cfg.fault_rate, seed=cfg.seed)
+            sim = SimConfig(
+                variant=v, duration=cfg.duration, limits=cfg.limits, faults=faults, seed=cfg.seed
+            )
             groups.append(
                 _Group(
                     pid,
