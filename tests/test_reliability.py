@@ -344,15 +344,15 @@ def test_injected_faults_never_move_the_arm_on_an_untrusted_frame(vine_views, cl
         pose.T_vine_camera, cut, 0.02, 0.05, np.random.default_rng(0), twin.camera, 0.4
     )
     faults = FaultConfig(classes=(cls,), rate=0.25 if cls != "jerk" else 0.4, seed=3)
-    cfg = SimConfig(duration=2.5, settle=0.0, fixed_period=1 / 30, faults=faults)
+    cfg = SimConfig(duration=3.0, settle=0.0, fixed_period=1 / 30, faults=faults)
     run = simulate(vine_views.backend, pose.T_vine_camera, start, pose_seed(0, pose.id),
                    twin.perception, cfg)  # fmt: skip
     f = run.summary()["faults"]
     assert f["commands_over_limit"] == 0 and f["motion_on_untrusted"] == 0, f
     events = f["classes"][cls]["events"]
     assert events >= 2, f
-    assert f["classes"][cls]["recovered"] >= events - 1, f  # the last may fall at the very end
+    assert f["classes"][cls]["never_recovered"] == 0, f
     if cls in EXPECTED_REFUSAL:
         assert EXPECTED_REFUSAL[cls] in run.reasons, run.reasons
     if cls == "drop":
-        assert len(run.t) < 0.8 * 2.5 * 30  # frames went missing
+        assert len(run.t) < 0.8 * 3.0 * 30  # frames went missing

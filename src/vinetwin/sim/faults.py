@@ -155,6 +155,11 @@ class FaultySource(CameraSource):
         return out
 
 
+#: An event this long before the end of the run with no trusted frame after it never recovered
+#: (later ones may just have run out of time).
+NEVER_RECOVERED_S = 1.0
+
+
 def fault_summary(
     log: FaultLog,
     cycles: list[dict[str, Any]],
@@ -162,7 +167,8 @@ def fault_summary(
     duration: float,
 ) -> dict[str, Any]:
     """Per fault class: events, recoveries (a trusted frame after the event, before the run
-    ended), the median and largest recovery time; and for the whole run: commands above a limit
+    ended), events never recovered (no trusted frame in the `NEVER_RECOVERED_S` or more left),
+    the median and largest recovery time; and for the whole run: commands above a limit
     and non-zero twists sent on refused frames (both must be 0)."""
     over = sum(
         np.linalg.norm(c["sent"][:3]) > limits.max_linear + 1e-9
@@ -173,12 +179,16 @@ def fault_summary(
     trusted_t = [c["t"] for c in cycles if c["trusted"]]
     per_class: dict[str, dict[str, Any]] = {}
     for t, cls in log.events:
-        row = per_class.setdefault(cls, {"events": 0, "recovered": 0, "recovery_s": []})
+        row = per_class.setdefault(
+            cls, {"events": 0, "recovered": 0, "never_recovered": 0, "recovery_s": []}
+        )
         row["events"] += 1
         after = next((x for x in trusted_t if x > t), None)
         if after is not None:
             row["recovered"] += 1
             row["recovery_s"].append(after - t)
+        elif t < duration - NEVER_RECOVERED_S:
+            row["never_recovered"] += 1
     for row in per_class.values():
         rs = row.pop("recovery_s")
         row["median_recovery_s"] = float(np.median(rs)) if rs else None

@@ -108,7 +108,8 @@ FAULTS_NOTE = (
     "One run per fault class and variant from start 1, the class injected with the configured "
     "probability per frame (vinetwin.sim.faults). Commands over a limit: twists sent above the "
     "speed limits (must be 0). Motion on untrusted: non-zero twists sent on a refused or overrun "
-    "frame (must be 0). Recovered: events followed by a trusted frame before the run ended; "
+    "frame (must be 0). Recovered: events followed by a trusted frame before the run ended "
+    "(never recovered: none in the 1 s or more left after the event); "
     "recovery: the time from the event to that frame."
 )
 
@@ -128,6 +129,7 @@ def fault_rows(data: dict[str, Any]) -> list[dict[str, str]]:
                 "variant": s["variant"],
                 "events": str(c.get("events", 0)),
                 "recovered": str(c.get("recovered", 0)),
+                "never recovered": str(c.get("never_recovered", 0)),
                 "median recovery (s)": _fmt(c.get("median_recovery_s"), 1, 2),
                 "max recovery (s)": _fmt(c.get("max_recovery_s"), 1, 2),
                 "commands over a limit": str(f.get("commands_over_limit", "-")),
