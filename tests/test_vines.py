@@ -121,7 +121,7 @@ def test_bad_hydroshoot_files(tmp_path: Path, text: str, needle: str) -> None:
 @pytest.mark.parametrize(
     ("text", "needle"),
     [
-        ("3\n0 0 0 0 0 1 0.1\n", "should follow"),
+        ("3\n", "should follow"),
         ("1\n0 0 0 0 0 1 -0.1\n", "non-positive radius"),
         ("x\n", "cylinder count"),
     ],
@@ -148,3 +148,101 @@ def test_branch_validation_and_skeleton_json_round_trip(tmp_path: Path) -> None:
     back = Skeleton.load(tmp_path / "s.json")
     assert len(back.branches) == len(sk.branches) and len(back.candidates) == len(sk.candidates)
     np.testing.assert_allclose(back.branches[3].points, sk.branches[3].points, atol=1e-6)
+
+
+def test_degenerate_cylinders_are_skipped_with_their_line_numbers(tmp_path: Path) -> None:
+    """Real cylinder lists hold repeated rows, zero-length and zero-radius cylinders, garbage,
+    duplicate blocks and disconnected pieces: the usable ones import, each skip is reported
+    with its line, and a tube mesh is built."""
+    good = [
+        "0 0 0 0 0 0.10 0.020",  # trunk
+        "0 0 0.10 0 0 0.10 0.018",
+        "0 0 0.20 0.08 0 0.02 0.008",  # a lateral from the trunk's top
+    ]
+    piece_a, piece_b = "1 1 1 0 0 0.05 0.01", "2 2 2 0 0 0.05 0.01"  # disconnected pieces
+    text = "\n".join(
+        [
+            "7",
+            *good,
+            "0 0 0.20 0.08 0 0.02 0.008",  # line 5: repeats line 4
+            "0.5 0.5 0.5 0 0 0 0.01",  # line 6: zero length
+            "0.6 0.6 0.6 0 0 0.1 0",  # line 7: zero radius
+            "0.7 0.7 0.7 nan 0 0.1 0.01",  # line 8: non-finite
+            "2",
+            piece_a,
+            piece_b,
+            "2",  # line 12: repeats the block of line 9
+            piece_a,
+            piece_b,
+            "4",  # line 15: announces 4, holds 1
+            "1 1 1.5 0 0 0.05 0.01",
+            "x y",  # line 17
+        ]
+    )
+    p = tmp_path / "tree.txt"
+    p.write_text(text + "\n")
+    sk = read_cylinders(p)
+    said = "\n".join(sk.skipped)
+    for needle in (
+        "line 5: repeats line 4",
+        "line 6: zero-length",
+        "line 7: non-positive radius",
+        "line 8: non-finite",
+        "line 12: a block of 2 cylinders repeats an earlier block",
+        "line 15: a block announces 4",
+        "line 17: expected 7 numbers",
+    ):
+        assert needle in said, said
+    assert len(sk.skipped) == 7
+    # trunk (2 cylinders) + lateral + 3 disconnected pieces
+    assert sorted(len(b.points) for b in sk.branches) == [2, 2, 2, 2, 3]
+    lateral = next(b for b in sk.branches if b.label == "lines 4-4")
+    assert lateral.parent == next(i for i, b in enumerate(sk.branches) if b.label == "lines 2-3")
+    assert len(sk.candidates) == 1  # the lateral: 8 cm long, grows out of the trunk
+    c = sk.candidates[0]
+    np.testing.assert_allclose(np.linalg.norm(c.point - [0, 0, 0.20]), 0.03, atol=1e-9)
+    V, F = tube_mesh(sk, edge=0.004, caps="flat")
+    assert len(F) > 100 and np.all(np.isfinite(V))
+    p.write_text("2\n0 0 0 0 0 0 0.1\n0 0 0 0 0 1 -1\n")
+    with pytest.raises(ImportFormatError, match=r"zero-length.*non-positive radius"):
+        read_cylinders(p)
+
+
+def test_degenerate_hydroshoot_rows_are_skipped_with_their_line_numbers(tmp_path: Path) -> None:
+    src = shared("vines", "hydroshoot", "vsp_ww_grapevine", "digit.input").read_text()
+    lines = src.splitlines()
+    bad = [
+        *lines[:5],
+        lines[4],  # line 6: repeats line 5
+        "1;1;1;0;0;0;abc;0;0",  # line 7: bad number
+        "1;1;1;0",  # line 8: too few fields
+        "1;1;1;0;0;0;nan;0;0",  # line 9: non-finite
+        *lines[5:],
+    ]
+    p = tmp_path / "digit.input"
+    p.write_text("\n".join(bad) + "\n")
+    sk = read_hydroshoot(p)
+    said = "\n".join(sk.skipped)
+    for needle in (
+        "line 6: repeats line 5",
+        "line 7: bad number",
+        "line 8: expected",
+        "line 9: non-finite",
+    ):
+        assert needle in said, said
+    clean = read_hydroshoot(shared("vines", "hydroshoot", "vsp_ww_grapevine", "digit.input"))
+    assert len(sk.branches) == len(clean.branches) and len(sk.candidates) == len(clean.candidates)
+
+
+@pytest.mark.parametrize(
+    "path",
+    [*(f"vines/hydroshoot/{v}/digit.input" for v in ("gdc_can1_grapevine", "vsp_ww_grapevine", "virtual_vsp")),
+     *(f"trees/tree-models-library/{t}" for t in TREES)],
+)  # fmt: skip
+def test_every_shared_plant_file_imports_as_a_twin(path: str, tmp_path: Path) -> None:
+    from vinetwin.twin.importers import import_twin
+
+    twin = import_twin(shared(*path.split("/")), tmp_path / "t.twin", edge=0.01, cut_points=2)
+    assert twin.provenance["source"]["skipped"] == []  # these files are clean
+    assert len(twin.poses) == 2
+    assert len(twin.load_mesh().faces) > 1000

@@ -16,6 +16,8 @@ Formats:
 
 from __future__ import annotations
 
+import logging
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +31,8 @@ from vinetwin.twin.skeleton import Branch, BranchKind, CutCandidate, Skeleton
 
 if TYPE_CHECKING:
     from vinetwin.twin.model import Twin
+
+log = logging.getLogger(__name__)
 
 SkeletonFormat = Literal["hydroshoot", "cylinders"]
 
@@ -146,23 +150,39 @@ def read_hydroshoot(path: str | Path) -> Skeleton:
     has_diam = len(header) >= 10
     base: Array | None = None
     nodes: list[_Node] = []
+    skipped: list[str] = []
+    seen: dict[tuple[str, ...], int] = {}
     for i, ln in enumerate(lines[1:], start=2):
         f = [c.strip() for c in ln.split(";")]
         if len(f) < len(header):
-            raise ImportFormatError(f"{path}:{i}: expected {len(header)} fields, got {len(f)}")
+            skipped.append(f"line {i}: expected {len(header)} fields, got {len(f)}")
+            continue
         try:
             xyz = np.array([float(f[6]), float(f[7]), float(f[8])]) / 100.0
             diam = float(f[9]) / 100.0 if has_diam and f[9] not in ("", "NA") else None
         except ValueError as exc:
-            raise ImportFormatError(f"{path}:{i}: bad number: {exc}") from exc
+            skipped.append(f"line {i}: bad number: {exc}")
+            continue
         if not np.all(np.isfinite(xyz)):
-            raise ImportFormatError(f"{path}:{i}: non-finite coordinate")
+            skipped.append(f"line {i}: non-finite coordinate")
+            continue
+        if diam is not None and not (math.isfinite(diam) and diam > 0):
+            skipped.append(f"line {i}: diameter {diam * 100:g} cm is not positive: default used")
+            diam = None
         if f[1].upper() == "BASE":
             base = xyz
             continue
+        row = tuple(f)
+        if row in seen:
+            skipped.append(f"line {i}: repeats line {seen[row]}")
+            continue
+        seen[row] = i
         nodes.append(_Node(i, f[1], f[2], f[3], f[4], f[5], xyz, diam))
-    if not nodes:
-        raise ImportFormatError(f"{path}: no plant nodes")
+    if len(nodes) < 2:  # one node is no plant
+        raise ImportFormatError(
+            f"{path}: fewer than 2 usable plant nodes"
+            + (": " + "; ".join(skipped[:8]) if skipped else "")
+        )
 
     by_key = {_node_key(n): n for n in nodes}
     axes: dict[tuple[str, ...], list[_Node]] = {}
@@ -171,7 +191,7 @@ def read_hydroshoot(path: str | Path) -> Skeleton:
     main_axes = sorted((k for k in axes if k[0] == "main"), key=lambda k: int(_lead_int(k[1]) or 0))
     trunk_key = main_axes[0] if main_axes else None
 
-    sk = Skeleton()
+    sk = Skeleton(skipped=skipped)
     branch_of: dict[tuple[str, ...], int] = {}
     placed: list[Array] = []
 
@@ -199,8 +219,13 @@ def read_hydroshoot(path: str | Path) -> Skeleton:
             start = parent.xyz if parent is not None else nearest_placed(first.xyz)
             if parent is not None:
                 parent_idx = branch_of.get(_axis_key(parent), -1)
-        pts = [m.xyz for m in members]
-        diams = [m.diameter for m in members]
+        pts, diams = [], []
+        for m in members:  # a node repeating the previous position adds nothing
+            if pts and np.linalg.norm(m.xyz - pts[-1]) <= 1e-9:
+                skipped.append(f"line {m.row}: at the same position as the node before: merged")
+                continue
+            pts.append(m.xyz)
+            diams.append(m.diameter)
         if start is not None and np.linalg.norm(start - pts[0]) > 1e-9:
             pts = [start, *pts]
             diams = [diams[0], *diams]
@@ -253,47 +278,90 @@ def read_hydroshoot(path: str | Path) -> Skeleton:
 # ----------------------------------------------------------------------------- cylinders
 def read_cylinders(path: str | Path) -> Skeleton:
     """Reads a cylinder list (metres) into a skeleton; chains of touching cylinders become
-    one branch each."""
+    one branch each.
+
+    Real files have degenerate elements. What cannot be used is skipped and reported in
+    `Skeleton.skipped` with its line number: a line that is not a count or 7 numbers, a
+    non-finite value, a radius <= 0, a zero-length cylinder, a row repeating an earlier one, a
+    block repeating an earlier block, a block with fewer rows than it announces (its rows are
+    kept). Disconnected pieces become separate branches. Only a file with nothing usable left
+    fails, with the reasons.
+
+    Cut-point candidates (`Skeleton.candidates`), the rule for cylinder trees: every branch
+    that grows out of another (its first point within 2 radii of another branch's axis) and is
+    at least 4 cm long gets one, `CANDIDATE_OFFSET` (3 cm) from its base along its axis, where a
+    pruner heads back a lateral; the tree's root branch gets none."""
     try:
-        text = Path(path).read_text(encoding="utf-8", errors="replace").split()
+        lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError as exc:
         raise ImportFormatError(f"{path}: cannot read: {exc}") from exc
-    if not text:
-        raise ImportFormatError(f"{path}: empty file")
-    # One or more blocks, each a count N followed by N rows of 7 numbers.
-    blocks: list[Array] = []
-    pos = 0
-    while pos < len(text):
+    skipped: list[str] = []
+    blocks: list[list[tuple[int, tuple[float, ...]]]] = []
+    k = 0
+    while k < len(lines):
+        toks = lines[k].split()
+        k += 1
+        if not toks:
+            continue
+        if len(toks) != 1:
+            skipped.append(f"line {k}: expected a cylinder count, got {lines[k - 1].strip()!r:.60}")
+            continue
         try:
-            n = int(text[pos])
-        except ValueError as exc:
-            raise ImportFormatError(
-                f"{path}: expected a cylinder count at token {pos + 1}, got {text[pos]!r}"
-            ) from exc
-        pos += 1
-        chunk = text[pos : pos + 7 * n]
-        if n < 0 or len(chunk) != 7 * n:
-            raise ImportFormatError(
-                f"{path}: a block announces {n} cylinders, so {7 * n} numbers should follow; "
-                f"got {len(chunk)}"
+            n = int(toks[0])
+        except ValueError:
+            skipped.append(f"line {k}: expected a cylinder count, got {toks[0]!r:.60}")
+            continue
+        head, block = k, []
+        while len(block) < n and k < len(lines):
+            row = lines[k].split()
+            if len(row) == 1:  # the next block's count: this block is short
+                break
+            k += 1
+            if not row:
+                continue
+            if len(row) != 7:
+                skipped.append(f"line {k}: expected 7 numbers 'x y z dx dy dz r', got {len(row)}")
+                continue
+            try:
+                block.append((k, tuple(float(v) for v in row)))
+            except ValueError:
+                skipped.append(f"line {k}: not a number in {lines[k - 1].strip()!r:.60}")
+        if len(block) < n:
+            skipped.append(
+                f"line {head}: a block announces {n} cylinders, so {7 * n} numbers should "
+                f"follow; got {7 * len(block)} (the rows present are kept)"
             )
-        try:
-            blocks.append(np.array([float(v) for v in chunk]).reshape(n, 7))
-        except ValueError as exc:
-            raise ImportFormatError(f"{path}: bad number: {exc}") from exc
-        pos += 7 * n
-    cyl = np.concatenate(blocks) if blocks else np.empty((0, 7))
-    n = len(cyl)
-    if n == 0:
-        raise ImportFormatError(f"{path}: no cylinders")
-    if not np.all(np.isfinite(cyl)):
-        raise ImportFormatError(f"{path}: non-finite value")
-    if np.any(cyl[:, 6] <= 0):
-        bad = int(np.argmax(cyl[:, 6] <= 0))
-        raise ImportFormatError(f"{path}: cylinder {bad + 1} has a non-positive radius")
+        if block and any([r for _, r in block] == [r for _, r in b] for b in blocks):
+            skipped.append(f"line {head}: a block of {n} cylinders repeats an earlier block")
+            continue
+        blocks.append(block)
+    rows: list[tuple[int, Array]] = []
+    seen: dict[tuple[float, ...], int] = {}
+    for block in blocks:
+        for line, r in block:
+            c = np.asarray(r)
+            if not np.all(np.isfinite(c)):
+                skipped.append(f"line {line}: non-finite value")
+            elif c[6] <= 0:
+                skipped.append(f"line {line}: non-positive radius {c[6]:g}")
+            elif np.linalg.norm(c[3:6]) < 1e-9:
+                skipped.append(f"line {line}: zero-length cylinder")
+            elif r in seen:
+                skipped.append(f"line {line}: repeats line {seen[r]}")
+            else:
+                seen[r] = line
+                rows.append((line, c))
+    if not rows:
+        raise ImportFormatError(
+            f"{path}: no usable cylinders"
+            + (": " + "; ".join(skipped[:8]) if skipped else " (empty file)")
+        )
+    cyl = np.array([c for _, c in rows])
+    line_of = [ln for ln, _ in rows]
     starts, axes, radii = cyl[:, :3], cyl[:, 3:6], cyl[:, 6]
     ends = starts + axes
-    sk = Skeleton()
+    n = len(cyl)
+    sk = Skeleton(skipped=skipped)
     i = 0
     while i < n:
         j = i
@@ -305,9 +373,51 @@ def read_cylinders(path: str | Path) -> Skeleton:
             j += 1
         pts = np.concatenate([starts[i : i + 1], ends[i : j + 1]])
         r = np.concatenate([radii[i : i + 1], radii[i : j + 1]])
-        sk.branches.append(Branch(pts, r, kind="branch", label=f"cyl{i + 1}-{j + 1}"))
+        sk.branches.append(Branch(pts, r, kind="branch", label=f"lines {line_of[i]}-{line_of[j]}"))
         i = j + 1
+    _cylinder_candidates(sk)
     return sk
+
+
+#: Where a cylinder tree's cut-point candidate sits on a lateral: this far from its base (m).
+CANDIDATE_OFFSET = 0.03
+
+
+def _cylinder_candidates(sk: Skeleton) -> None:
+    """Parents (the branch whose axis passes nearest each branch's first point) and the
+    candidates of `read_cylinders`' rule."""
+    for idx, b in enumerate(sk.branches):
+        base, best, best_d = b.points[0], -1, np.inf
+        for o, other in enumerate(sk.branches):
+            if o == idx:
+                continue
+            d = _distance_to_polyline(base, other.points)
+            if d < best_d:
+                best, best_d = o, d
+        if best < 0 or best_d > 2 * max(float(b.radii[0]), 1e-3) + 1e-3:
+            continue
+        b.parent = best
+        if b.length < 0.04:
+            continue
+        seg = np.linalg.norm(np.diff(b.points, axis=0), axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        at = min(CANDIDATE_OFFSET, 0.5 * s[-1])
+        m = int(np.searchsorted(s, at, side="right") - 1)
+        m = min(max(m, 0), len(seg) - 1)
+        while seg[m] < 1e-9 and m + 1 < len(seg):
+            m += 1
+        axis = (b.points[m + 1] - b.points[m]) / seg[m]
+        point = b.points[m] + (at - s[m]) * axis
+        sk.candidates.append(
+            CutCandidate(point, axis, branch=idx, radius=float(b.radii[m]), label=b.label)
+        )
+
+
+def _distance_to_polyline(p: Array, pts: Array) -> float:
+    a, b = pts[:-1], pts[1:]
+    ab = b - a
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum((ab * ab).sum(1), 1e-18), 0, 1)
+    return float(np.min(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
 
 
 def import_twin(
@@ -324,7 +434,13 @@ def import_twin(
     from vinetwin.twin.model import twin_from_skeleton
 
     kind = detect_format(path) if fmt == "auto" else fmt
+    sk = load_skeleton(path, kind)
+    for what in sk.skipped:
+        log.warning("%s: %s", path, what)
+    if sk.skipped:
+        log.warning("%s: %d elements skipped (listed above)", path, len(sk.skipped))
+    source = {"importer": kind, "file": str(path), "skipped": sk.skipped}
     return twin_from_skeleton(
-        out, load_skeleton(path, kind), edge=edge, caps="round" if kind == "hydroshoot" else "flat",
-        source={"importer": kind, "file": str(path)}, cut_points=cut_points, overwrite=overwrite,
+        out, sk, edge=edge, caps="round" if kind == "hydroshoot" else "flat", source=source,
+        cut_points=cut_points, overwrite=overwrite,
     )  # fmt: skip

@@ -68,6 +68,8 @@ class Skeleton:
 
     branches: list[Branch] = field(default_factory=list)
     candidates: list[CutCandidate] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    """What an importer could not use, each with its line number (not saved with the twin)."""
 
     def bounds(self, inflate_by_radius: bool = True) -> Array:
         """(2, 3) min/max corner of all centre points, optionally grown by each point's radius."""
