@@ -12,6 +12,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from vinetwin.capture.topics import RosTopics
 from vinetwin.errors import VinetwinError
 from vinetwin.progress import with_progress
 from vinetwin.reconstruct.pipeline import ReconstructConfig
@@ -317,20 +318,22 @@ class CaptureSynthetic:
 
 @dataclass(frozen=True, kw_only=True)
 class ImportRecording:
-    """Turn a RealSense recording (.db3 from librealsense 2.59, or .bag where the installed
-    librealsense reads it) into a capture folder (colour aligned to depth; no robot poses)."""
+    """A recording as a capture folder: a ROS 1 or ROS 2 bag (RealSense ROS driver topics, poses
+    from /tf; docs/ros.md) or a librealsense recording (.db3, .bag; no robot poses)."""
 
     recording: Annotated[Path, Positional]
-    """Recording file."""
+    """Recording: a file, or a ROS 2 bag folder."""
     out: Path
     """Capture folder to write."""
+    topics: Annotated[RosTopics, Nested] = field(default_factory=RosTopics)
     max_frames: int = 0
     """Stop after this many frames (0: all)."""
 
     def run(self) -> None:
-        from vinetwin.capture.realsense import read_recording
+        from vinetwin.capture.rosbag import import_recording
 
-        log.info("capture: %s", read_recording(self.recording, self.out, self.max_frames))
+        out = import_recording(self.recording, self.out, self.topics, self.max_frames)
+        log.info("capture: %s", out)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -351,20 +354,15 @@ class Reconstruct:
     """Write the fusion report and the evaluation here."""
 
     def run(self) -> None:
-        import json
-
         from vinetwin.reconstruct.pipeline import reconstruct
 
-        report = with_progress(
+        with_progress(
             "fusing frames",
             lambda progress: reconstruct(
                 self.capture, self.twin, self.config, overwrite=self.overwrite,
-                ground_truth=self.ground_truth, progress=progress,
+                ground_truth=self.ground_truth, progress=progress, json_path=self.json,
             ),
         )  # fmt: skip
-        if self.json:
-            self.json.parent.mkdir(parents=True, exist_ok=True)
-            self.json.write_text(json.dumps(report, indent=1))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -402,8 +400,7 @@ class Demo:
         Export(twin=dst).run()
         first = Twin.load(dst).poses[0].id
         Preview(twin=dst, pose=first, out=self.out / f"preview_{first}.png").run()
-        log.info("demo done: references in %s, preview in %s", dst / "references",
-                 self.out / f"preview_{first}.png")  # fmt: skip
+        log.info("demo done: references and preview in %s", self.out)
 
 
 COMMANDS: dict[str, type] = {

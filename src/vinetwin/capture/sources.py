@@ -161,6 +161,31 @@ class FolderSource(CameraSource):
         return time.monotonic() if self.rate is not None else self._last
 
 
+class RosBagSource(FolderSource):
+    """Plays a ROS 1 or ROS 2 bag back (`capture.rosbag`): its depth frames, with the camera
+    poses its TF recorded, as a capture folder does. The bag is first read into a temporary
+    capture folder, removed at `close`."""
+
+    def __init__(self, path: str | Path, rate: float | None = None, topics: Any = None) -> None:
+        import tempfile
+
+        from vinetwin.capture.rosbag import read_ros_bag
+
+        self._tmp = tempfile.TemporaryDirectory(prefix="vinetwin-bag-")
+        try:
+            self.report = read_ros_bag(path, Path(self._tmp.name) / "capture", topics)
+            super().__init__(self.report.path, rate)
+        except BaseException:
+            self._tmp.cleanup()
+            raise
+        self.description = (
+            f"ROS bag {path} ({self.report.frames} frames, {self.report.posed} posed)"
+        )
+
+    def close(self) -> None:
+        self._tmp.cleanup()
+
+
 # ----------------------------------------------------------------------------- pyrealsense2
 def _rs() -> Any:
     try:
@@ -477,8 +502,9 @@ def open_source(
     rate: float | None = None,
     serial: str | None = None,
 ) -> CameraSource:
-    """A source from its command-line name: `realsense` (live D405), `bag:PATH` (a recording:
-    at its recorded rate by default, as fast as read with `rate` 0, at `rate` frames per second
+    """A source from its command-line name: `realsense` (live D405), `bag:PATH` (a ROS 1 or
+    ROS 2 bag with a depth image topic, replayed with its TF poses like a capture folder; or a
+    librealsense recording: at its recorded rate by default, as fast as read with `rate` 0, at `rate` frames per second
     otherwise), `folder:PATH` (a capture folder: as fast as read, or at `rate`). `sim` is built
     by the simulation (`servo.sim`)."""
     kind, _, arg = spec.partition(":")
@@ -492,6 +518,10 @@ def open_source(
             width, height, fps, color=color, serial=serial or (arg or None), camera=camera
         )
     if kind == "bag" and arg:
+        from vinetwin.capture.rosbag import is_ros_bag
+
+        if is_ros_bag(arg):  # a ROS 1 / ROS 2 bag; else a librealsense recording
+            return RosBagSource(arg, rate=rate or None)
         return RecordingSource(
             arg, real_time=rate is None, rate=rate or None, color=color, camera=camera
         )

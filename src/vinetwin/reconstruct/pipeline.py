@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from vinetwin.errors import TwinError
+from vinetwin.files import atomic_write_json
 
 log = logging.getLogger(__name__)
 
@@ -43,11 +44,12 @@ def reconstruct(
     overwrite: bool = False,
     ground_truth: str | Path | None = None,
     progress: Callable[[object, int, int], None] | None = None,
+    json_path: str | Path | None = None,
 ) -> dict[str, Any]:
     """Fuses the capture folder into a mesh in the twin folder `twin` (created; or, with
     `overwrite`, an existing twin's mesh replaced, its cut points and poses kept). With
     `ground_truth` (a twin folder or a mesh file) the mesh is scored: Chamfer distance and
-    F-scores under `report["evaluation"]`. Returns the report."""
+    F-scores under `report["evaluation"]`. Returns the report, also written to `json_path`."""
     import numpy as np
 
     from vinetwin.capture.folder import read_capture
@@ -139,4 +141,7 @@ def reconstruct(
             "against %s: Chamfer %.2f mm, F-score@2mm %.3f, F-score@5mm %.3f", gt_path,
             ev["chamfer_mm"], ev["fscore@2mm"], ev["fscore@5mm"],
         )  # fmt: skip
+    if json_path is not None:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(Path(json_path), report)
     return report
