@@ -253,6 +253,8 @@ class ServoCmd:
     record: Path | None = None
     """Also write the frames, with stamps and robot poses, as a capture folder (replayable with
     --camera folder:DIR --robot none)."""
+    mcap: Path | None = None
+    """Also write the run as MCAP for Foxglove or RViz (a ROS 2 bag folder; docs/ros.md)."""
 
     def run(self) -> None:
         from vinetwin.servo.runner import run_pose
@@ -261,7 +263,7 @@ class ServoCmd:
 
         summary, path = run_pose(
             Twin.load(self.twin), self.config, log_path=self.log, record=self.record,
-            simulator=simulated_session,
+            simulator=simulated_session, mcap=self.mcap,
         )  # fmt: skip
         print(f"{summary.describe()}\nlog: {path}")
 

@@ -170,15 +170,19 @@ def run_pose(
     log_path: str | Path | None = None,
     record: str | Path | None = None,
     simulator: Callable[[Twin, PruningPose, RunnerConfig], Session] | None = None,
+    mcap: str | Path | None = None,
 ) -> tuple[LoopSummary, Path]:
     """Servos to one pruning pose; returns the loop's summary and the log's path. The simulated
-    camera (`cfg.camera == "sim"`) needs `simulator`: `vinetwin.sim.rig.simulated_session`."""
+    camera (`cfg.camera == "sim"`) needs `simulator`: `vinetwin.sim.rig.simulated_session`.
+    `mcap`: also write the run as a ROS 2 bag with MCAP storage (`servo.mcap_log`)."""
     pose = twin.pose(cfg.pose) if cfg.pose else twin.poses[0]
     robot_kind = _check_combination(cfg)
     path = Path(log_path) if log_path else default_log_path(twin, pose.id)
     _check_writable(path, "--log", folder=False)  # before any robot or camera is opened
     if record is not None:
         _check_writable(Path(record), "--record", folder=True)
+    if mcap is not None and Path(mcap).exists():
+        raise InputError(f"--mcap {mcap} exists; choose a new name (a folder is made)")
     if cfg.camera == "sim":
         if simulator is None:
             raise InputError(
@@ -202,7 +206,17 @@ def run_pose(
         **session.header,
     }
     writer = None
+    viewer = None
     try:
+        if mcap is not None:
+            from vinetwin.servo.mcap_log import McapLog
+
+            T_base_vine = session.T_base_goal @ invert(np.asarray(pose.T_vine_camera, float))
+            T_cut = np.eye(4)
+            T_cut[:3, 3] = twin.cut_point(pose.cut_point).point
+            viewer = McapLog(
+                mcap, session.servo.reference, session.T_base_goal, T_base_vine @ T_cut
+            )
         if record is not None:
             from vinetwin.capture.folder import CaptureWriter
 
@@ -216,6 +230,8 @@ def run_pose(
         def on_cycle(c: Cycle) -> dict[str, Any] | None:
             if writer is not None:
                 writer.add(c.frame.counts, c.frame.color, c.T_base_camera, c.frame.stamp)
+            if viewer is not None:
+                viewer.cycle(c)
             return {"true_error": truth()} if truth is not None else None
 
         try:
@@ -230,6 +246,8 @@ def run_pose(
     finally:
         if writer is not None:
             writer.close()
+        if viewer is not None:
+            viewer.close()
         session.close()
 
 

@@ -56,6 +56,8 @@ class StepResult:
     icp: ICPResult | None = None
     timings: dict[str, float] = field(default_factory=dict)
     """Seconds spent in perception, icp and control."""
+    cloud: Cloud | None = None
+    """The frame's cloud after perception (`step_depth`), camera frame."""
 
 
 class Servo:
@@ -87,6 +89,7 @@ class Servo:
         self.perception = perception or PerceptionConfig()
         self.camera = camera
         max_depth = self.perception.max_depth if camera is not None else math.inf
+        self.reference = reference
         self.icp = ICP(reference, self.icp_config, camera=camera, max_depth=max_depth)
         self.gain = gain
         self.limits = limits or Limits()
@@ -131,6 +134,7 @@ class Servo:
             return self._refuse(f"bad depth image: {exc}", stamp)
         t_perception = time.perf_counter() - t0
         result = self.step(cloud, stamp, T_base_camera, now)
+        result.cloud = cloud
         result.timings["perception"] = t_perception
         return result
 
