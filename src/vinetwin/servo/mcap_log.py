@@ -51,8 +51,8 @@ class McapLog:
         if self.path.exists():
             raise InputError(f"--mcap {self.path} exists; choose a new name (a folder is made)")
         self.ts = get_typestore(Stores.ROS2_HUMBLE)
-        self.T = self.ts.types
-        self.writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.T: dict[str, Any] = dict(self.ts.types)  # message classes, built at run time
+        self.writer: Any = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
         self.writer.open()
         self.conn = {
             t: self.writer.add_connection(t, m, typestore=self.ts) for t, m in TOPICS.items()
@@ -144,4 +144,4 @@ class McapLog:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
-            self.writer = None  # type: ignore[assignment]
+            self.writer = None
