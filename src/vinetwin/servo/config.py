@@ -25,6 +25,17 @@ Guess = Literal["kinematic", "previous", "identity"]
 GUESSES: tuple[str, ...] = ("kinematic", "previous", "identity")
 
 
+def check_finite(config: object, names: tuple[str, ...], positive: bool = False) -> None:
+    """Raises InputError naming the first of `names` that is not finite and > 0 (`positive`)
+    or >= 0: a limit that NaN, infinity or a negative number would switch off."""
+    for name in names:
+        v = getattr(config, name)
+        if not (math.isfinite(v) and (v > 0 if positive else v >= 0)):
+            raise InputError(
+                f"{name} must be {'positive' if positive else '>= 0'} and finite, got {v}"
+            )
+
+
 @dataclass(frozen=True, kw_only=True)
 class Limits(JsonFields):
     """The camera's speed and acceleration limits. The servo law saturates its twist to the
@@ -41,14 +52,8 @@ class Limits(JsonFields):
     """Ramp on increases of the angular speed, rad/s^2; 0: none."""
 
     def __post_init__(self) -> None:
-        for name in ("max_linear", "max_angular"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be positive and finite, got {v}")
-        for name in ("max_linear_acceleration", "max_angular_acceleration"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"{name} must be >= 0 and finite, got {v}")
+        check_finite(self, ("max_linear", "max_angular"), positive=True)
+        check_finite(self, ("max_linear_acceleration", "max_angular_acceleration"))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -60,8 +65,7 @@ class CommandLimits(Limits):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if not (math.isfinite(self.watchdog) and self.watchdog > 0):
-            raise InputError(f"watchdog must be positive and finite, got {self.watchdog}")
+        check_finite(self, ("watchdog",), positive=True)
 
     def speeds(self) -> Limits:
         """The limits without the watchdog (what the servo law uses)."""
@@ -146,14 +150,8 @@ class LoopConfig(JsonFields):
     instead (s, > 0). The simulation, whose time is simulated, does not check it."""
 
     def __post_init__(self) -> None:
-        for name in ("frame_timeout", "camera_lost", "max_cycle"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise InputError(f"{name} must be positive and finite, got {v}")
-        for name in ("duration", "settle"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"{name} must be >= 0 and finite, got {v}")
+        check_finite(self, ("frame_timeout", "camera_lost", "max_cycle"), positive=True)
+        check_finite(self, ("duration", "settle"))
         if self.max_frames < 0:
             raise InputError(f"max_frames must be >= 0, got {self.max_frames}")
         if self.camera_lost < self.frame_timeout:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Literal
 
 from vinetwin._config import JsonFields
 from vinetwin.errors import InputError
-from vinetwin.servo.config import Limits, ServoConfig, Variant
+from vinetwin.servo.config import Limits, ServoConfig, Variant, check_finite
 from vinetwin.sim.paper import PRESETS
 
 if TYPE_CHECKING:
@@ -125,11 +125,9 @@ class SimConfig(ServoConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         self._nested_from_dicts()
-        if not (self.camera_rate > 0 and self.duration > 0):
-            raise InputError(
-                f"camera_rate and duration must be positive, got {self.camera_rate} and "
-                f"{self.duration}"
-            )
+        check_finite(self, ("camera_rate", "duration"), positive=True)
+        check_finite(self, ("fixed_period", "settle", "registration_error_translation",
+                            "registration_error_rotation"))  # fmt: skip
 
 
 def _check_variants(variants: tuple[str, ...]) -> None:
@@ -186,6 +184,8 @@ class CampaignConfig(JsonFields):
         if self.preset not in PRESETS:
             raise InputError(f"unknown preset '{self.preset}'; choose one of: {', '.join(PRESETS)}")
         _check_variants(self.variants)
+        check_finite(self, ("duration", "camera_rate"), positive=True)
+        check_finite(self, ("fixed_period",))
         if self.sim not in ("kinematic", "mujoco"):
             raise InputError(f"unknown simulation '{self.sim}'; choose kinematic or mujoco")
 
@@ -224,7 +224,4 @@ class ValidateConfig(JsonFields):
         _check_variants(self.variants)
         if self.starts < 1:
             raise InputError(f"starts must be >= 1, got {self.starts}")
-        for name in ("radius_translation", "radius_rotation", "duration"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"{name} must be finite and >= 0, got {v}")
+        check_finite(self, ("radius_translation", "radius_rotation", "duration"))
