@@ -52,12 +52,16 @@ class _Msgs:
             return self.T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=frame)
         return self.T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
 
-    def image(self, t: float, mm: np.ndarray):  # type: ignore[no-untyped-def]
+    def image(self, t: float, mm: np.ndarray, metres: bool = False):  # type: ignore[no-untyped-def]
         h, w = mm.shape
-        data = np.frombuffer(mm.astype("<u2").tobytes(), np.uint8)
+        if metres:  # 32FC1, no data as NaN
+            m = np.where(mm > 0, mm / 1000.0, np.nan).astype("<f4")
+            data, enc, step = np.frombuffer(m.tobytes(), np.uint8), "32FC1", 4 * w
+        else:
+            data, enc, step = np.frombuffer(mm.astype("<u2").tobytes(), np.uint8), "16UC1", 2 * w
         return self.T["sensor_msgs/msg/Image"](
-            header=self.header(t, CAMERA), height=h, width=w, encoding="16UC1",
-            is_bigendian=0, step=2 * w, data=data,
+            header=self.header(t, CAMERA), height=h, width=w, encoding=enc,
+            is_bigendian=0, step=step, data=data,
         )  # fmt: skip
 
     def info(self, t: float, cam):  # type: ignore[no-untyped-def]
@@ -91,7 +95,7 @@ class _Msgs:
 
 
 def write_bag(path: Path, ros1: bool, frames: list[tuple[float, np.ndarray, np.ndarray]], cam,  # type: ignore[no-untyped-def]
-              connect_tf: bool = True) -> Path:  # fmt: skip
+              connect_tf: bool = True, metres: bool = False) -> Path:  # fmt: skip
     """A bag as the RealSense ROS driver (plus robot_state_publisher) records it: depth in mm
     and its CameraInfo per frame, the arm's moving flange on /tf at 4x the frame rate (its
     stamps not those of the images: interpolated), the hand-eye transform on /tf_static."""
@@ -128,7 +132,7 @@ def write_bag(path: Path, ros1: bool, frames: list[tuple[float, np.ndarray, np.n
             w.write(c_tf, int(t * 1e9), m.serialize(msg))
         for t, mm, _T in frames:
             w.write(c_info, int(t * 1e9), m.serialize(m.info(t, cam)))
-            w.write(c_img, int(t * 1e9), m.serialize(m.image(t, mm)))
+            w.write(c_img, int(t * 1e9), m.serialize(m.image(t, mm, metres)))
     return path
 
 
@@ -197,8 +201,9 @@ def test_a_recording_without_a_tf_chain_imports_without_poses(
     assert all(f.T_base_camera is None for f in read_capture(tmp_path / "cap").frames)
 
 
-def test_cli_imports_reconstructs_and_replays_a_ros2_bag(
-    vine_views: VineViews, tmp_path: Path
+@pytest.mark.parametrize("ros1", [True, False], ids=["ros1", "ros2"])
+def test_cli_imports_reconstructs_and_replays_a_bag(
+    vine_views: VineViews, tmp_path: Path, ros1: bool
 ) -> None:
     import shutil
 
@@ -207,7 +212,7 @@ def test_cli_imports_reconstructs_and_replays_a_ros2_bag(
 
     cam = vine_views.twin.camera
     frames = _frames(vine_views, 8)
-    bag = write_bag(tmp_path / "rec2", False, frames, cam)
+    bag = write_bag(tmp_path / ("rec.bag" if ros1 else "rec2"), ros1, frames, cam)
     assert main(["import-recording", str(bag), "--out", str(tmp_path / "cap")]) == 0
     assert main(["reconstruct", str(tmp_path / "cap"), "--twin", str(tmp_path / "r.twin")]) == 0
     twin_dir = tmp_path / "t.twin"
@@ -256,3 +261,14 @@ def test_a_servo_run_written_as_mcap_reads_back_with_its_topics(
         "/tf_static": 1, "/vinetwin/reference_cloud": 1, "/tf": n, "/vinetwin/live_cloud": n,
         "/vinetwin/twist": n, "/vinetwin/trust": n,
     }  # fmt: skip
+
+
+def test_metre_depth_is_stored_in_tenth_millimetres(vine_views: VineViews, tmp_path: Path) -> None:
+    frames = _frames(vine_views, 3)
+    bag = write_bag(tmp_path / "rec2", False, frames, vine_views.twin.camera, metres=True)
+    rep = read_ros_bag(bag, tmp_path / "cap")
+    assert rep.depth_encoding == "32FC1"
+    cap = read_capture(tmp_path / "cap")
+    assert cap.depth_unit == 1e-4
+    for f, (_t, mm, _T) in zip(cap.frames, frames, strict=True):
+        np.testing.assert_array_equal(f.depth_counts(), mm.astype(np.uint32) * 10)  # NaN -> 0
