@@ -252,7 +252,7 @@ def test_the_web_app_warns_when_it_listens_beyond_loopback(
     try:
         assert "no authentication" in caplog.text
     finally:
-        app.server.stop()
+        app.close()
 
 
 # ----------------------------------------------------------------------------- 9 references

@@ -85,7 +85,13 @@ class App:
         self._static_scene()
         self._bind()
         self.refresh()
-        threading.Thread(target=self._warm_up, daemon=True).start()
+        self._warming = threading.Thread(target=self._warm_up, daemon=True, name="warm-up")
+        self._warming.start()
+
+    def close(self) -> None:
+        """Stops the server, once the renderer's warm-up (Open3D, in its own thread) is done."""
+        self._warming.join(timeout=60)
+        self.server.stop()
 
     def _warm_up(self) -> None:
         """Builds the renderer and compiles the perception chain before the first click."""
