@@ -111,3 +111,13 @@ def test_the_architecture_document_lists_every_package() -> None:
     for name in (*PACKAGES, "executor", "jobstore", "files", "mesh", "odometry"):
         assert name in doc
     assert Path(SRC / "executor.py").exists()
+
+
+def test_the_variant_list_of_the_configs_is_the_core_one() -> None:
+    """Core modules name the variants in `cloud.ICP_VARIANTS`; the configs' `Variant` type (the
+    command line's choices) must be the same list, in the same order."""
+    from vinetwin.cloud import ICP_VARIANTS
+    from vinetwin.servo.config import VARIANTS
+    from vinetwin.sim.config import ALL_VARIANTS
+
+    assert VARIANTS == ALL_VARIANTS == ICP_VARIANTS

@@ -157,6 +157,17 @@ def matrix_from_quat_wxyz(q: Any) -> Array:
     )
 
 
+# ---------------------------------------------------------------- ROS (geometry_msgs)
+def T_from_ros(translation: Any, quat_xyzw: Any) -> Array:
+    """A pose from a ROS `Transform` / `Pose`: translation (x, y, z) and quaternion (x, y, z, w)."""
+    return make_pose(matrix_from_quat_wxyz(quat_xyzw_to_wxyz(quat_xyzw)), translation)
+
+
+def ros_quat_xyzw(R: Any) -> Array:
+    """The ROS quaternion (x, y, z, w) of a rotation matrix."""
+    return quat_wxyz_to_xyzw(quat_wxyz_from_matrix(R))
+
+
 # ---------------------------------------------------------------- viser
 def viser_wxyz_position(T_world_frame: Any) -> tuple[Array, Array]:
     """(wxyz, position) that viser's scene nodes take for a pose T_world_frame.

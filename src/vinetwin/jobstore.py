@@ -12,7 +12,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from vinetwin.files import atomic_write_json, remove_orphan_temp_files
+from vinetwin._config import json_default
+from vinetwin.files import atomic_write_text, remove_orphan_temp_files
 
 
 class JobStore:
@@ -73,5 +74,6 @@ class JobStore:
     def put(self, name: str, digest: str, result: dict[str, Any]) -> dict[str, Any]:
         """Writes the result (atomically) with its digest; returns it as a reader reads it."""
         record = {**result, self.format_key: self.version, self.digest_key: digest}
-        atomic_write_json(self.path(name), record, indent=self.indent)
-        return json.loads(self.path(name).read_text())
+        text = json.dumps(record, indent=self.indent, default=json_default)
+        atomic_write_text(self.path(name), text + "\n")
+        return json.loads(text)

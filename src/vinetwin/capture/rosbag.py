@@ -19,7 +19,6 @@ What is read (`RosTopics`; defaults: the driver's topics, ROS 1 `/camera/...` an
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,8 +28,9 @@ import numpy as np
 from vinetwin.camera import CameraModel, d405
 from vinetwin.capture.folder import CaptureWriter
 from vinetwin.capture.topics import RosTopics
+from vinetwin.conventions import T_from_ros
 from vinetwin.errors import InputError
-from vinetwin.frames import Array, make_pose, so3_exp, so3_log
+from vinetwin.frames import Array, interpolate
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +183,7 @@ class TfTree:
             child = tr.child_frame_id.lstrip("/")
             self.parent[child] = tr.header.frame_id.lstrip("/")
             t, q = tr.transform.translation, tr.transform.rotation
-            T = make_pose(_quat_xyzw_matrix(q.x, q.y, q.z, q.w), [t.x, t.y, t.z])
+            T = T_from_ros([t.x, t.y, t.z], [q.x, q.y, q.z, q.w])
             if static:
                 self.static[child] = T
             else:
@@ -232,22 +232,7 @@ class TfTree:
         if k == 0 or k == len(tt):
             return None  # outside the recorded span
         t0, t1 = tt[k - 1], tt[k]
-        A, B = Ts[order[k - 1]], Ts[order[k]]
-        a = (t - t0) / (t1 - t0)
-        R = A[:3, :3] @ so3_exp(a * so3_log(A[:3, :3].T @ B[:3, :3]))
-        return make_pose(R, (1 - a) * A[:3, 3] + a * B[:3, 3])
-
-
-def _quat_xyzw_matrix(x: float, y: float, z: float, w: float) -> Array:
-    n = math.sqrt(x * x + y * y + z * z + w * w) or 1.0
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+        return interpolate(Ts[order[k - 1]], Ts[order[k]], (t - t0) / (t1 - t0))
 
 
 # ----------------------------------------------------------------------------- import

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 from vinetwin._config import JsonFields
 from vinetwin.errors import InputError
@@ -22,7 +22,10 @@ from vinetwin.errors import InputError
 Variant = Literal["point_to_point", "lm", "point_to_plane", "symmetric"]
 #: Where each frame's ICP starts (see `servo.step.Servo`).
 Guess = Literal["kinematic", "previous", "identity"]
-GUESSES: tuple[str, ...] = ("kinematic", "previous", "identity")
+GUESSES: tuple[str, ...] = get_args(Guess)
+#: Every ICP variant, in the paper's order (the same list as `cloud.ICP_VARIANTS`, which core
+#: modules use; a test keeps them equal).
+VARIANTS: tuple[str, ...] = get_args(Variant)
 
 
 def check_finite(config: object, names: tuple[str, ...], positive: bool = False) -> None:
@@ -119,11 +122,9 @@ class ServoConfig(JsonFields):
     """...and this (rad)."""
 
     def __post_init__(self) -> None:
-        from vinetwin.cloud import ICP_VARIANTS
-
-        if self.variant not in ICP_VARIANTS:
+        if self.variant not in VARIANTS:
             raise InputError(
-                f"unknown ICP variant '{self.variant}'; choose one of: {', '.join(ICP_VARIANTS)}"
+                f"unknown ICP variant '{self.variant}'; choose one of: {', '.join(VARIANTS)}"
             )
         if self.guess not in GUESSES:
             raise InputError(f"unknown guess '{self.guess}'; choose one of: {', '.join(GUESSES)}")

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin.cloud import Cloud
+from vinetwin.conventions import ros_quat_xyzw
 from vinetwin.errors import InputError
 from vinetwin.frames import Array
 from vinetwin.servo.loop import Cycle
@@ -74,9 +75,7 @@ class McapLog:
         return self.T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
 
     def _tf(self, t: float, parent: str, child: str, T: Array) -> Any:
-        from scipy.spatial.transform import Rotation
-
-        x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
+        x, y, z, w = ros_quat_xyzw(T[:3, :3])
         tr = self.T["geometry_msgs/msg/Transform"](
             translation=self.T["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
             rotation=self.T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),

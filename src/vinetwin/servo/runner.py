@@ -23,7 +23,7 @@ import datetime as _dt
 import logging
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -56,7 +56,6 @@ class Session:
     T_base_goal: Array
     true_error: Callable[[], list[float]] | None = None
     """The true camera error now (simulation only), logged with each cycle."""
-    header: dict[str, Any] = field(default_factory=dict)
     check_latency: bool = True
     """False in simulated time: no overrun check."""
 
@@ -203,7 +202,6 @@ def run_pose(
         "T_flange_camera": twin.T_flange_camera.tolist(),
         "T_base_goal": np.asarray(session.T_base_goal).tolist(),
         "source": session.source.description,
-        **session.header,
     }
     writer = None
     viewer = None

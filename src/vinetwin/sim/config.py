@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, get_args
 
 from vinetwin._config import JsonFields
 from vinetwin.errors import InputError
@@ -23,13 +23,10 @@ FaultClass = Literal[
     "drop", "stall", "zero", "nan", "half_nan", "stale", "duplicate", "jerk", "leaf",
     "lost_command",
 ]  # fmt: skip
-FAULT_CLASSES: tuple[str, ...] = (
-    "drop", "stall", "zero", "nan", "half_nan", "stale", "duplicate", "jerk", "leaf",
-    "lost_command",
-)  # fmt: skip
+FAULT_CLASSES: tuple[str, ...] = get_args(FaultClass)
 
 #: Every ICP variant, in the paper's order.
-ALL_VARIANTS: tuple[Variant, ...] = ("point_to_point", "lm", "point_to_plane", "symmetric")
+ALL_VARIANTS: tuple[Variant, ...] = get_args(Variant)
 
 
 @dataclass(frozen=True, kw_only=True)

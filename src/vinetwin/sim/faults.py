@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin.capture.sources import CameraFrame, CameraSource, quantize_depth
-from vinetwin.frames import Array, make_pose, so3_exp, transform_points
+from vinetwin.frames import Array, invert, make_pose, so3_exp, transform_points
 from vinetwin.sim.camera import SimCameraSource
 from vinetwin.sim.config import FAULT_CLASSES, FaultConfig
 
@@ -142,7 +142,7 @@ class FaultySource(CameraSource):
         """A leaf 9 cm from the camera over a disc of a third of the image's height, centred
         beside the cut's image point (a leaf rarely covers the cut exactly)."""
         cam = self.camera
-        p = transform_points(np.linalg.inv(self.inner.T_rel), self.cut_vine[None])[0]
+        p = transform_points(invert(self.inner.T_rel), self.cut_vine[None])[0]
         u, v = cam.cx, cam.cy
         if p[2] > 0:
             u = cam.fx * p[0] / p[2] + cam.cx
