@@ -15,6 +15,7 @@ from vinetwin.servo.pbvs import (
     pbvs_error,
     pbvs_twist,
     saturate,
+    target_twist,
 )
 
 
@@ -86,3 +87,57 @@ def test_kinematic_guess_equation_11() -> None:
     T_ref_prev = fr.invert(T_base_ref) @ T_base_prev  # what ICP found at the previous frame
     guess = kinematic_guess(T_ref_prev, T_base_prev, T_base_now)
     np.testing.assert_allclose(guess, fr.invert(T_base_ref) @ T_base_now, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("t0", "r0"), [(0.184749, 0.351915), (0.166275, 0.567889), (0.034708, 0.550662)]
+)
+def test_target_law_moves_the_cut_on_a_straight_line_and_reaches_the_goal(
+    t0: float, r0: float
+) -> None:
+    """The view-keeping law (PBVS on c_t_o and theta*u): the target's coordinates in the camera
+    frame decay exponentially towards their goal value along a straight line, its image pixel
+    moves on a straight line, and the camera ends at the reference pose."""
+    rng = np.random.default_rng(5)
+    T = fr.random_pose(rng, t0, r0)
+    o = np.array([0.004, -0.003, 0.15])  # the cut, 15 cm in front of the reference camera
+    lam, dt = 0.8, 0.001
+
+    def p_of(T: np.ndarray) -> np.ndarray:
+        return fr.transform_points(fr.invert(T), o[None])[0]
+
+    p0 = p_of(T)
+    path = [p0]
+    for _ in range(int(3.0 / dt)):
+        T = T @ fr.se3_exp(target_twist(T, o, lam) * dt)
+        path.append(p_of(T))
+    path_a = np.array(path)
+    # p(t) - o = (p0 - o) exp(-lambda t): straight line, exponential decay (Euler: < 0.2%)
+    expected = o + (p0 - o) * np.exp(-lam * 3.0)
+    np.testing.assert_allclose(path_a[-1], expected, atol=2e-3 * np.linalg.norm(p0 - o))
+    d = (p0 - o) / np.linalg.norm(p0 - o)
+    off_line = np.linalg.norm(np.cross(path_a - o, d), axis=1)
+    assert off_line.max() < 1e-3 * np.linalg.norm(p0 - o)
+    # the pixel path is straight too (a straight 3D line projects to a straight image line)
+    uv = path_a[:, :2] / path_a[:, 2:]
+    chord = uv[-1] - uv[0]
+    normal = np.array([-chord[1], chord[0]]) / np.linalg.norm(chord)
+    assert np.abs((uv - uv[0]) @ normal).max() < 1e-3 * np.linalg.norm(chord)
+    # and the rotation decays as with eq. 8
+    np.testing.assert_allclose(
+        pbvs_error(T)[3:], fr.so3_log(fr.random_pose(np.random.default_rng(5), t0, r0)[:3, :3])
+        * np.exp(-lam * 3.0), atol=1e-3 * r0,
+    )  # fmt: skip
+    for _ in range(int(12.0 / dt)):  # long enough: the camera reaches the reference pose
+        T = T @ fr.se3_exp(target_twist(T, o, lam) * dt)
+    et, er = fr.pose_error(T, np.eye(4))
+    assert et < 1e-5 and er < 1e-5
+
+
+def test_target_law_is_zero_at_the_goal_and_saturates() -> None:
+    o = np.array([0.0, 0.0, 0.15])
+    np.testing.assert_allclose(target_twist(np.eye(4), o, 0.8), np.zeros(6), atol=1e-15)
+    T = fr.random_pose(np.random.default_rng(2), 0.3, 1.0)
+    lim = Limits(max_linear=0.05, max_angular=0.25)
+    tw = target_twist(T, o, 0.8, lim)
+    assert np.linalg.norm(tw[:3]) <= 0.05 + 1e-12 and np.linalg.norm(tw[3:]) <= 0.25 + 1e-12

@@ -203,3 +203,81 @@ def test_error_decays_exponentially_with_perfect_alignment(
     expected = e0 * (1 - lam * dt) ** 100
     assert float(np.linalg.norm(fr.se3_log(T))) == pytest.approx(expected, rel=0.05)
     assert math.isclose(expected / e0, math.exp(-lam * 1.0), rel_tol=0.01)
+
+
+@pytest.mark.parametrize(
+    ("jump_t", "jump_r", "by_search"),
+    [
+        ((0.06, 0.0, 0.0), (0.0, 0.0, 0.2), False),
+        ((0.0, -0.04, 0.03), (0.15, 0.0, 0.0), True),
+        ((0.05, 0.03, 0.0), (0.0, 0.2, 0.0), True),
+    ],
+)
+def test_a_big_jerk_of_the_vine_is_reacquired(
+    ref: Cloud,
+    vine_views: VineViews,
+    jump_t: tuple[float, ...],
+    jump_r: tuple[float, ...],
+    by_search: bool,
+) -> None:
+    """The vine jumps 6-7 cm / 0.15-0.2 rad while the arm is still: tracking refuses the frames
+    as a pose jump until the same jump is seen in `reacquire_frames` frames (when tracking ICP
+    still finds it), or the wide search finds the new pose and `reacquire_frames` frames agree
+    on it (flagged `reacquired`). Either way the pose is within 2 mm / 0.01 rad of the truth,
+    well before `lost_after`, and no frame in between moves the arm."""
+    s = servo(ref, vine_views, search_after=0.2)
+    base = fr.make_pose(t=[0.3, 0.0, 0.5])
+    D = fr.make_pose(t=[0.005, 0.0, 0.0])
+    assert s.step(seen_from(ref, D), 0.0, T_base_camera=base).trusted
+    jumped = fr.make_pose(fr.so3_exp(np.array(jump_r)), np.array(jump_t)) @ D
+    stamps = [k / 30 for k in range(1, 60)]
+    results = [s.step(seen_from(ref, jumped), t, T_base_camera=base) for t in stamps]
+    trusted = [k for k, r in enumerate(results) if r.trusted]
+    assert trusted, [r.reason for r in results[:12]]
+    first = trusted[0]
+    for r in results[:first]:
+        assert np.array_equal(r.twist, np.zeros(6)), r.reason
+    got = results[first]
+    assert got.reacquired == by_search and s.reacquisitions == int(by_search)
+    assert stamps[first] <= 0.2 + (s.safety.reacquire_frames + 1) / 30 + 1e-9
+    assert stamps[first] < s.safety.lost_after
+    assert got.T_ref_cur is not None
+    et, er = fr.pose_error(got.T_ref_cur, jumped)
+    assert et < 0.002 and er < 0.01, (et, er)
+    # tracking carries on from there
+    assert s.step(seen_from(ref, jumped), stamps[-1] + 1 / 30, T_base_camera=base).trusted
+
+
+def test_refusals_for_lost_after_seconds_end_in_a_named_stop(
+    ref: Cloud, vine_views: VineViews
+) -> None:
+    """Nothing alignable for `lost_after` s: the servo stops for good with "lost the vine"
+    (never silent zeros forever), every twist zero, until it is reset."""
+    s = servo(ref, vine_views, lost_after=1.0, search_after=0.3)
+    base = fr.make_pose(t=[0.3, 0.0, 0.5])
+    assert s.step(seen_from(ref, np.eye(4)), 0.0, T_base_camera=base).trusted
+    away = seen_from(ref, fr.make_pose(t=[0.0, 0.0, 0.3]))  # nothing within reach
+    out = [s.step(away, k / 30, T_base_camera=base) for k in range(1, 45)]
+    lost = [k for k, r in enumerate(out) if r.lost]
+    assert lost, out[-1].reason
+    k = lost[0]
+    assert (k + 1) / 30 - 1 / 30 >= 1.0 - 1e-9  # not before lost_after
+    assert (k + 1) / 30 - 1 / 30 <= 1.0 + 1 / 30 + 1e-9  # and at once after it
+    assert "lost the vine" in out[k].reason and "no trusted alignment" in out[k].reason
+    assert all(np.array_equal(r.twist, np.zeros(6)) and not r.trusted for r in out)
+    # a good frame after the stop does not restart the arm...
+    again = s.step(seen_from(ref, np.eye(4)), 2.0, T_base_camera=base)
+    assert again.lost and not again.trusted and np.array_equal(again.twist, np.zeros(6))
+    # ...a reset does
+    s.reset()
+    assert s.step(seen_from(ref, np.eye(4)), 2.1, T_base_camera=base).trusted
+
+
+def test_the_first_estimate_must_lie_near_the_believed_pose(
+    ref: Cloud, vine_views: VineViews
+) -> None:
+    s = servo(ref, vine_views, max_guess_translation=0.001, search_after=10.0)
+    s.reset(fr.make_pose(t=[0.004, 0.0, 0.0]))  # believed 4 mm off; ICP finds the truth
+    r = s.step(seen_from(ref, np.eye(4)), 0.0)
+    assert not r.trusted and "implausible first estimate" in r.reason, r.reason
+    assert np.array_equal(r.twist, np.zeros(6))

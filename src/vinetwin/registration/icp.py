@@ -40,7 +40,9 @@ from vinetwin.registration._kernels import NNTree
 NDF = npt.NDArray[np.float64]
 
 #: Default edge-of-view rejection reach per variant (m); absent: none.
-EDGE_REACH = {"point_to_plane": 0.003}
+EDGE_REACH = {"point_to_plane": 0.003, "point_to_point": 0.01, "lm": 0.01}
+#: Variants whose edge rejection also applies at the final level (the others: coarse levels only).
+EDGE_FINAL = frozenset({"point_to_plane"})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -71,7 +73,15 @@ class ICPConfig:
     """With the reference's camera given to ICP: pairs whose reference point lies within
     min(this, the level's reach) of the edge of the reference view are rejected (m). None: the
     variant's default, `EDGE_REACH` (measured on the sample's views, benchmarks/icp.py: it
-    helps point-to-plane, and costs symmetric and point-to-point accuracy)."""
+    helps point-to-plane, and costs symmetric accuracy; point-to-point and LM use it at their
+    coarse levels only, see `edge_final`)."""
+    edge_final: bool | None = None
+    """Also reject edge pairs at the final level (False: only at the coarse levels, where a
+    current view reaching past the reference's drags the estimate along the canes; at the
+    final level the pairs are already short). None: the variant's default, `EDGE_FINAL`.
+    Measured on the sample's views from Table 1's starts (benchmarks/icp_basin.py):
+    point-to-point without the coarse rejection slid 215-343 mm away from a 5 mm / 0.02 rad
+    guess in some views, with it at most 8 mm."""
     cycle_translation: float = 0.0005
     """At the iteration limit of the final level, an estimate still alternating between pair
     sets (a limit cycle) whose states lie within this (m)..."""
@@ -82,6 +92,11 @@ class ICPConfig:
     """Fewer points than this in a cloud is a failure."""
     min_correspondences: int = 20
     """Fewer accepted pairs than this is a failure."""
+    min_overlap: float = 0.2
+    """A result pairing less than this share of the smaller cloud at the final level is a
+    failure ("diverged"), whatever its update size said: an estimate that wandered off along
+    the canes can stop moving with a tenth of its points paired (a held-out vine's 2 mm view,
+    point-to-plane from 2 cm / 3 deg: 184 mm off, fitness 0.11). 0: no check."""
     huber_delta: float = 0.0
     """LM only: Huber kernel width (m); 0 disables the robust kernel."""
     degeneracy_ratio: float = 1e-3
@@ -106,6 +121,10 @@ class ICPConfig:
         if self.edge_reach is not None:
             return self.edge_reach
         return EDGE_REACH.get(self.variant, 0.0)
+
+    def edge_at_final(self) -> bool:
+        """Whether the final level rejects edge pairs too."""
+        return self.variant in EDGE_FINAL if self.edge_final is None else self.edge_final
 
     def levels(self) -> list[tuple[float, float]]:
         """All levels, the final one included: (voxel size, correspondence distance)."""
@@ -228,7 +247,8 @@ class ICP:
             return
         ref_n = reference.normals  # also used by the degeneracy check of every variant
         cache: dict[float, tuple[NNTree, NDF]] = {}
-        for voxel, dmax in self.config.levels():
+        levels = self.config.levels()
+        for i, (voxel, dmax) in enumerate(levels):
             if voxel not in cache:
                 pts, nrm = _downsample(reference.points, ref_n, voxel)
                 tree = NNTree(pts)
@@ -236,7 +256,12 @@ class ICP:
                 cache[voxel] = (tree, nrm)
             tree, nrm = cache[voxel]
             use = np.ones(len(tree.points), dtype=bool)
-            if camera is not None and self.config.edge_reach_m() > 0:
+            final = i == len(levels) - 1
+            if (
+                camera is not None
+                and self.config.edge_reach_m() > 0
+                and (self.config.edge_at_final() or not final)
+            ):
                 use = ~view_edge_mask(
                     tree.points, camera, min(dmax, self.config.edge_reach_m()), max_depth
                 )
@@ -310,6 +335,12 @@ class ICP:
         if result.converged and n_ok < cfg.min_correspondences:
             result.converged = False
             result.reason = f"too few correspondences ({n_ok} < {cfg.min_correspondences}) within {lv.dmax:.4f} m"
+        elif result.converged and result.overlap < cfg.min_overlap:
+            result.converged = False
+            result.reason = (
+                f"diverged: only {100 * result.overlap:.0f}% of the smaller cloud paired within "
+                f"{1000 * lv.dmax:.1f} mm (minimum {100 * cfg.min_overlap:.0f}%)"
+            )
         if result.converged:
             degenerate = self._degeneracy(q[ok], idx[ok])
             if degenerate:

@@ -20,6 +20,10 @@ from vinetwin.errors import InputError
 
 #: The ICP variants (the paper's four).
 Variant = Literal["point_to_point", "lm", "point_to_plane", "symmetric"]
+#: The control law: eq8 (the paper's PBVS, the camera's centre on a straight line) or target
+#: (PBVS on the cut point and theta*u, the cut's image on a straight line: `pbvs.target_twist`).
+Law = Literal["eq8", "target"]
+LAWS: tuple[str, ...] = get_args(Law)
 #: Where each frame's ICP starts (see `servo.step.Servo`).
 Guess = Literal["kinematic", "previous", "identity"]
 GUESSES: tuple[str, ...] = get_args(Guess)
@@ -101,6 +105,25 @@ class SafetyConfig(JsonFields):
     """m."""
     reacquire_rotation: float = 0.01
     """rad."""
+    max_guess_translation: float = 0.05
+    """Before the first trusted frame: an estimate farther than this (m) from the believed pose
+    (the caller's initial guess) is refused (ICP slid to another part of the vine)."""
+    max_guess_rotation: float = 0.25
+    """rad (same rule)."""
+    search_after: float = 0.3
+    """After refusals for this long (s, by frame stamps), each frame is also registered by the
+    wide search (`servo.reacquire`): coarse-to-fine from several hypotheses around the
+    prediction; its answer is trusted once the same pose is found in `reacquire_frames`
+    consecutive frames and no other hypothesis fits as well. 0: from the first refusal."""
+    search_translation: float = 0.05
+    """The wide search's hypotheses lie this far (m) from the prediction, along each axis of
+    the reference camera..."""
+    search_rotation: float = 0.15
+    """...and turned this far (rad) about each axis through the reference cloud's centre."""
+    lost_after: float = 2.0
+    """After refusals for this long (s, by frame stamps) without a trusted frame the servo stops
+    for good with the named reason "lost the vine" (the loop ends; `Servo.reset` starts again).
+    0: never."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -116,6 +139,9 @@ class ServoConfig(JsonFields):
     """lambda far from the goal."""
     guess: Guess = "kinematic"
     """Where ICP starts each frame: kinematic (eq. 11), previous or identity."""
+    law: Law = "eq8"
+    """Control law: eq8 (the paper's) or target (keeps the cut in view: its image moves on a
+    straight line)."""
     converged_translation: float = 0.002
     """At the goal when the error is within this (m)..."""
     converged_rotation: float = 0.01
@@ -128,6 +154,8 @@ class ServoConfig(JsonFields):
             )
         if self.guess not in GUESSES:
             raise InputError(f"unknown guess '{self.guess}'; choose one of: {', '.join(GUESSES)}")
+        if self.law not in LAWS:
+            raise InputError(f"unknown law '{self.law}'; choose one of: {', '.join(LAWS)}")
 
 
 @dataclass(frozen=True, kw_only=True)

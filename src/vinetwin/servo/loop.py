@@ -65,7 +65,11 @@ class LoopSummary:
     sent: int = 0
     ended: str = ""
     """Why the loop ended: at goal, duration, frames, end of recording, camera stopped, stopped
-    (callback), interrupted, or the error."""
+    (callback), lost the vine (see `lost`), interrupted, or the error."""
+    lost: str = ""
+    """The servo's "lost the vine" reason when it ended the run (`SafetyConfig.lost_after`)."""
+    reacquisitions: int = 0
+    """Frames the wide search trusted after a streak of refusals."""
     at_goal: bool = False
     final_error: list[float] | None = None
     """(translation m, rotation rad) of the last trusted estimate."""
@@ -87,6 +91,10 @@ class LoopSummary:
             lines.append(f"last estimated error: {1000 * t:.2f} mm, {r:.4f} rad")
         if self.reasons:
             lines.append("refused: " + ", ".join(f"{k} x{v}" for k, v in self.reasons.items()))
+        if self.reacquisitions:
+            lines.append(f"re-acquired by the wide search {self.reacquisitions} times")
+        if self.lost:
+            lines.append(f"STOPPED: {self.lost}")
         lines.append(
             f"median cycle {self.median_cycle_ms:.1f} ms, {self.loop_rate_hz:.1f} Hz; "
             f"overruns {self.overruns}, camera timeouts {self.camera_timeouts}"
@@ -232,6 +240,10 @@ def run_loop(
                     at_goal_since = frame.stamp if at_goal_since is None else at_goal_since
                 else:
                     at_goal_since = None
+            summary.reacquisitions += int(r.reacquired)
+            if r.lost:
+                summary.ended, summary.lost = "lost the vine", r.reason
+                break
             if end:
                 summary.ended = "stopped"
                 break

@@ -98,6 +98,32 @@ def pbvs_twist(T_ref_cur: Any, gain: Gain | float = 0.8, limits: Limits | None =
     return saturate(twist, limits) if limits is not None else twist
 
 
+def target_twist(
+    T_ref_cur: Any, target: Any, gain: Gain | float = 0.8, limits: Limits | None = None
+) -> Array:
+    """The view-keeping law: PBVS on s = (c_t_o, theta*u) (Chaumette & Hutchinson 2006, IEEE
+    RAM 13(4), sec. "Position-based visual servo control", second choice of s), with `target`
+    the point o (the cut) in the reference camera frame, c*_t_o.
+
+    With p = c_t_o = (c*R_c)^T (c*_t_o - c*t_c), the target in the current camera frame, and
+    dp/dt = -v + [p]x omega under a camera twist, the law
+    `omega = -lambda theta*u`, `v = lambda ((p - c*_t_o) - [p]x theta*u)`
+    gives dp/dt = -lambda (p - c*_t_o): the target moves on a straight line in the camera frame,
+    so its image moves on a straight line too, and stays in view when it starts in view (eq. 8
+    moves the camera's centre on a straight line instead, and the target can leave the image on
+    large rotations). Both errors decay as exp(-lambda t); at the goal p = c*_t_o and the
+    rotation is the identity, so the camera is at the reference pose."""
+    T = np.asarray(T_ref_cur, dtype=np.float64)
+    o = np.asarray(target, dtype=np.float64).reshape(3)
+    R, t = T[:3, :3], T[:3, 3]
+    p = R.T @ (o - t)
+    w = so3_log(R)
+    g = gain if isinstance(gain, Gain) else Gain(l0=float(gain))
+    lam = g(float(np.linalg.norm(np.concatenate([p - o, w]))))
+    twist = np.concatenate([lam * ((p - o) - np.cross(p, w)), -lam * w])
+    return saturate(twist, limits) if limits is not None else twist
+
+
 def kinematic_guess(T_ref_prev: Any, T_base_camera_prev: Any, T_base_camera_now: Any) -> Array:
     """ICP initial guess from robot kinematics (eq. 11):
     c*H_ck = c*H_ck-1 @ inv(B_H_ck-1) @ B_H_ck."""

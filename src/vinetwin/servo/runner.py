@@ -32,7 +32,7 @@ import numpy as np
 from vinetwin.capture.sources import CameraSource
 from vinetwin.cloud import Cloud
 from vinetwin.errors import InputError
-from vinetwin.frames import Array, invert, pose_error
+from vinetwin.frames import Array, invert, pose_error, transform_points
 from vinetwin.servo.config import LoopConfig, RunnerConfig
 from vinetwin.servo.loop import Cycle, CycleLog, LoopSummary, run_loop
 from vinetwin.servo.robot import Robot
@@ -114,12 +114,18 @@ def _check_combination(cfg: RunnerConfig) -> str:
     return robot_kind
 
 
+def cut_in_camera(twin: Twin, pose: PruningPose) -> Array:
+    """The pose's cut point in its (reference) camera frame: the target of the view-keeping law."""
+    cut = twin.cut_point(pose.cut_point).point
+    return transform_points(invert(np.asarray(pose.T_vine_camera, float)), cut[None])[0]
+
+
 def hardware_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Session:
     """A live, recorded or rendered camera with a Franka or no robot."""
     robot_kind, _, host = cfg.robot.partition(":")
     servo = make_servo(
         reference_cloud(twin, pose.id), twin.camera, twin.perception, cfg.servo,
-        cfg.limits.speeds(),
+        cfg.limits.speeds(), target=cut_in_camera(twin, pose),
     )  # fmt: skip
     T_base_ref = twin.T_world_vine @ np.asarray(pose.T_vine_camera, float)
     robot: Robot | None = None

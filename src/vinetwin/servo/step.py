@@ -14,7 +14,14 @@ structures). `Servo.step(cloud, stamp, T_base_camera)` then, per frame:
    pass the thresholds, and the estimate lies within what the motion since the last trusted
    frame can explain (a pose jump means ICP slipped to another cane), unless the same jump is
    seen in `reacquire_frames` consecutive frames (the vine itself moved: the servo re-acquires);
-5. returns the PBVS twist (eq. 8, saturated, its increase ramped by the acceleration limits), or
+   before the first trusted frame, the estimate must lie within `max_guess_translation` /
+   `max_guess_rotation` of the believed pose;
+5. after refusals for `search_after` s, also runs the wide search (`registration.search`:
+   coarse-to-fine from several hypotheses around the prediction) and trusts its pose once
+   `reacquire_frames` consecutive frames agree on it and no other hypothesis fits as well;
+6. after refusals for `lost_after` s, stops for good: "lost the vine" (`StepResult.lost`), a
+   named end instead of zeros forever;
+7. returns the PBVS twist (eq. 8, saturated, its increase ramped by the acceleration limits), or
    a zero twist and the reason.
 
 A refused frame never moves the arm: the twist is exactly zero and `trusted` is False.
@@ -33,8 +40,9 @@ from vinetwin.camera import CameraModel
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.frames import Array, check_pose, invert, pose_error, se3_exp
 from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
+from vinetwin.registration.search import WideSearch
 from vinetwin.servo.config import GUESSES, Limits, SafetyConfig, ServoConfig
-from vinetwin.servo.pbvs import Gain, kinematic_guess, pbvs_error, pbvs_twist
+from vinetwin.servo.pbvs import Gain, kinematic_guess, pbvs_error, pbvs_twist, target_twist
 
 
 @dataclass
@@ -58,6 +66,11 @@ class StepResult:
     """Seconds spent in perception, icp and control."""
     cloud: Cloud | None = None
     """The frame's cloud after perception (`step_depth`), camera frame."""
+    reacquired: bool = False
+    """Trusted by the wide search after a streak of refusals (not by tracking)."""
+    lost: bool = False
+    """The servo lost the vine (refusals for `SafetyConfig.lost_after`) and stopped for good;
+    the loop ends."""
 
 
 class Servo:
@@ -76,15 +89,28 @@ class Servo:
         goal_translation: float = 0.002,
         goal_rotation: float = 0.01,
         guess: str = "kinematic",
+        law: str = "eq8",
+        target: Any = None,
     ) -> None:
         """`camera` and `perception` are the twin's: they describe the reference's view (for the
         edge-of-view rejection of ICP) and run the perception chain of `step_depth`. `guess` is
         where each frame's ICP starts: "kinematic" (eq. 11, the default), "previous" (the last
         trusted estimate, ignoring the robot's motion) or "identity" (no initial guess, as plain
-        ICP; the pose-jump rule is then off, having no prediction to compare with)."""
+        ICP; the pose-jump rule is then off, having no prediction to compare with). `law` is
+        eq8 or target (`pbvs.target_twist`), towards `target`, the cut point in the reference
+        camera frame (None: the median of the reference cloud)."""
         if guess not in GUESSES:
             raise ValueError(f"unknown guess '{guess}'; choose one of: {', '.join(GUESSES)}")
         self.guess = guess
+        if law not in ("eq8", "target"):
+            raise ValueError(f"unknown law '{law}'; choose eq8 or target")
+        self.law = law
+        if target is not None:
+            self.target = np.asarray(target, dtype=np.float64).reshape(3)
+        elif len(reference.points):
+            self.target = np.median(reference.points, axis=0)
+        else:
+            self.target = np.zeros(3)
         self.icp_config = icp or ICPConfig()
         self.perception = perception or PerceptionConfig()
         self.camera = camera
@@ -96,6 +122,8 @@ class Servo:
         self.safety = safety or SafetyConfig()
         self.goal_translation = goal_translation
         self.goal_rotation = goal_rotation
+        self._max_depth = max_depth
+        self._search: WideSearch | None = None
         self.reset()
 
     def reset(self, initial_guess: Any = None) -> None:
@@ -110,7 +138,13 @@ class Servo:
         self._twist_stamp = -math.inf
         self.refusals = 0
         """Consecutive refused frames."""
+        self.reacquisitions = 0
+        """Poses trusted by the wide search since the reset."""
+        self.lost = ""
+        """Why the servo lost the vine (empty while it has not)."""
+        self._streak_since: float | None = None
         self._jumps: list[Array] = []
+        self._found: list[Array] = []
 
     # ------------------------------------------------------------------ per frame
     def step_depth(
@@ -143,6 +177,8 @@ class Servo:
     ) -> StepResult:
         """One frame: the camera twist to command until the next frame, or zero and the reason."""
         s = self.safety
+        if self.lost:
+            return StepResult(np.zeros(6), False, self.lost, lost=True)
         if not math.isfinite(stamp) or stamp <= self._last_stamp:
             return self._refuse(
                 f"stale frame: stamp {stamp} is not newer than the last one ({self._last_stamp})",
@@ -180,15 +216,17 @@ class Servo:
         t_icp = time.perf_counter() - t0
         timings = {"icp": t_icp}
 
-        reason = ""
-        if not r.converged:
-            reason = f"ICP failed: {r.reason}"
-        elif r.overlap < s.min_overlap:
-            reason = f"low overlap: {r.overlap:.2f} < {s.min_overlap}"
-        elif r.correspondences < s.min_correspondences:
-            reason = f"too few correspondences: {r.correspondences} < {s.min_correspondences}"
-        elif not r.inlier_rmse <= s.max_rmse:
-            reason = f"high RMSE: {1000 * r.inlier_rmse:.2f} mm > {1000 * s.max_rmse:.2f} mm"
+        reason = f"ICP failed: {r.reason}" if not r.converged else self._untrusted(r)
+        if reason:
+            pass
+        elif self._trusted_T is None and self._guess is not None and self.guess != "identity":
+            jt, jr = pose_error(r.T_ref_cur, guess)
+            if jt > s.max_guess_translation or jr > s.max_guess_rotation:
+                reason = (
+                    f"implausible first estimate: {1000 * jt:.1f} mm / {math.degrees(jr):.2f} deg "
+                    f"from the believed pose (allowed {1000 * s.max_guess_translation:.0f} mm / "
+                    f"{math.degrees(s.max_guess_rotation):.1f} deg)"
+                )
         elif self._trusted_T is not None and self.guess != "identity":
             jt, jr = pose_error(r.T_ref_cur, guess)
             allow_t, allow_r = s.max_jump_translation, s.max_jump_rotation
@@ -202,18 +240,38 @@ class Servo:
                     f"from its prediction (allowed {1000 * allow_t:.1f} mm / "
                     f"{math.degrees(allow_r):.2f} deg)"
                 )
+        reacquired = False
         if reason:
             if not reason.startswith("pose jump"):
                 self._jumps.clear()
+            since = stamp if self._streak_since is None else self._streak_since
+            if stamp - since >= s.search_after and not self._lost_now(stamp):
+                t0 = time.perf_counter()
+                found, why = self._wide_search(cloud, guess, base)
+                timings["search"] = time.perf_counter() - t0
+                if found is None:
+                    reason = f"{reason}; wide search: {why}"
+                else:
+                    r, reason, reacquired = found, "", True
+        if reason:
             out = self._refuse(reason, stamp)
-            out.T_ref_cur, out.icp, out.timings = r.T_ref_cur, r, timings
+            if not out.lost:
+                out.T_ref_cur, out.icp = r.T_ref_cur, r
+            out.timings = timings
             return out
         self._jumps.clear()
+        self._found.clear()
+        self._streak_since = None
+        self.reacquisitions += int(reacquired)
 
         t0 = time.perf_counter()
         T = r.T_ref_cur
         e = pbvs_error(T)
-        twist = self._ramp(pbvs_twist(T, self.gain, self.limits), stamp)
+        if self.law == "target":
+            twist = target_twist(T, self.target, self.gain, self.limits)
+        else:
+            twist = pbvs_twist(T, self.gain, self.limits)
+        twist = self._ramp(twist, stamp)
         timings["control"] = time.perf_counter() - t0
         self._trusted_T, self._trusted_stamp, self._trusted_base = T, stamp, base
         self._twist, self._twist_stamp = twist, stamp
@@ -222,9 +280,57 @@ class Servo:
             float(np.linalg.norm(e[:3])) <= self.goal_translation
             and float(np.linalg.norm(e[3:])) <= self.goal_rotation
         )
-        return StepResult(twist, True, "", T, e, at_goal, r, timings)
+        return StepResult(twist, True, "", T, e, at_goal, r, timings, reacquired=reacquired)
 
     # ------------------------------------------------------------------ helpers
+    def _untrusted(self, r: ICPResult) -> str:
+        """Why a converged alignment is not trusted by the thresholds ("" when it is)."""
+        s = self.safety
+        if r.overlap < s.min_overlap:
+            return f"low overlap: {r.overlap:.2f} < {s.min_overlap}"
+        if r.correspondences < s.min_correspondences:
+            return f"too few correspondences: {r.correspondences} < {s.min_correspondences}"
+        if not r.inlier_rmse <= s.max_rmse:
+            return f"high RMSE: {1000 * r.inlier_rmse:.2f} mm > {1000 * s.max_rmse:.2f} mm"
+        return ""
+
+    def _wide_search(
+        self, cloud: Cloud, prediction: Array, base: Array | None
+    ) -> tuple[ICPResult | None, str]:
+        """The wide search on this frame; its pose is returned once `reacquire_frames`
+        consecutive frames found the same one (compared as the reference camera in the robot
+        base, or as they are without kinematics)."""
+        s = self.safety
+        if self._search is None:
+            self._search = WideSearch(
+                self.reference, variant=self.icp_config.variant, camera=self.camera,
+                max_depth=self._max_depth,
+            )  # fmt: skip
+        res = self._search.align(
+            cloud, prediction, translation=s.search_translation, rotation=s.search_rotation,
+            accept=self._untrusted,
+        )  # fmt: skip
+        if res.best is None:
+            self._found.clear()
+            return None, res.reason
+        T = res.best.T_ref_cur
+        implied = T if base is None else base @ invert(T)
+        if self._found:
+            jt, jr = pose_error(self._found[-1], implied)
+            if jt > s.reacquire_translation or jr > s.reacquire_rotation:
+                self._found.clear()
+        self._found.append(implied)
+        need = max(s.reacquire_frames, 1)
+        if len(self._found) < need:
+            return None, f"found a pose in {len(self._found)} of the {need} frames it needs"
+        return res.best, ""
+
+    def _lost_now(self, stamp: float) -> bool:
+        """True when this refusal ends a streak of `lost_after` s."""
+        lim = self.safety.lost_after
+        since = self._streak_since
+        return lim > 0 and since is not None and stamp - since >= lim
+
     def _consistent_jump(self, T_ref_cur: Array, base: Array | None) -> bool:
         """A jump seen the same way in `reacquire_frames` consecutive frames is the scene moving
         (the vine was pushed), not ICP slipping: the servo re-acquires it. Estimates are
@@ -270,6 +376,14 @@ class Servo:
         self._twist = np.zeros(6)
         if not keep_stamp and math.isfinite(stamp):
             self._twist_stamp = max(self._twist_stamp, stamp)
+            if self._streak_since is None:
+                self._streak_since = stamp
+            if self._lost_now(stamp):
+                self.lost = (
+                    f"lost the vine: no trusted alignment for {stamp - self._streak_since:.2f} s "
+                    f"(limit {self.safety.lost_after} s; last refusal: {reason})"
+                )
+                return StepResult(np.zeros(6), False, self.lost, lost=True)
         return StepResult(np.zeros(6), False, reason)
 
 
@@ -280,6 +394,7 @@ def make_servo(
     config: ServoConfig,
     limits: Limits | None = None,
     safety: SafetyConfig | None = None,
+    target: Any = None,
 ) -> Servo:
     """The servo a `ServoConfig` describes, for a twin's camera and perception settings: the one
     the simulation, `vinetwin servo` and the web app build."""
@@ -296,6 +411,8 @@ def make_servo(
         goal_translation=config.converged_translation,
         goal_rotation=config.converged_rotation,
         guess=config.guess,
+        law=config.law,
+        target=target,
     )
 
 

@@ -43,7 +43,9 @@ from vinetwin.twin.model import Twin
 log = logging.getLogger(__name__)
 
 #: Version of the per-run files under a report's `runs/` folder.
-CAMPAIGN_FORMAT = 1
+CAMPAIGN_FORMAT = 2
+#: The variant of the control-law comparison (its runs under the grid's law are the grid's).
+LAW_VARIANT = "point_to_plane"
 
 
 @dataclass
@@ -59,6 +61,8 @@ class _Job:
     pose_id: str
     robot: str | None = None
     """None: kinematic camera; "" vinetwin's Panda; else a Panda model path."""
+    cut: list[float] | None = None
+    """The cut point (vine frame): the view-keeping law's target."""
     context: dict[str, Any] = field(default_factory=dict)
     """The twin, for the worker (`twin_context`)."""
 
@@ -89,6 +93,7 @@ def _run_job(job: _Job) -> dict[str, Any]:
         disturbance=Disturbance.from_dict(dist) if dist else None,
         pose_id=job.pose_id,
         arm=worker_arm(job.context, job.robot, np.asarray(job.goal)),
+        cut=None if job.cut is None else np.asarray(job.cut),
     )
     fault_point(job.key, "run")
     return {
@@ -109,6 +114,7 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
     goal = np.asarray(pose.T_vine_camera)
     ref_seed = pose_seed(cfg.seed, pose.id)
     base = SimConfig(
+        law=cfg.law,
         duration=cfg.duration,
         camera_rate=cfg.camera_rate,
         fixed_period=cfg.fixed_period,
@@ -125,7 +131,8 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
 
     def job(key: str, group: str, i: int, sim: SimConfig, dist: Disturbance | None = None) -> _Job:
         return _Job(key, group, i, goal.tolist(), starts[i].tolist(), sim.to_dict(),
-                    dist.to_dict() if dist else {}, ref_seed, pose.id, robot, ctx)  # fmt: skip
+                    dist.to_dict() if dist else {}, ref_seed, pose.id, robot,
+                    np.asarray(cut, float).tolist(), ctx)  # fmt: skip
 
     jobs = [
         job(f"grid/{i}/{v}", "grid", i, replace(base, variant=v))
@@ -148,6 +155,12 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
         jobs += [
             job(f"faults/{c}/{v}", "faults", 0, replace(base, variant=v, faults=faults))
             for v in cfg.variants
+        ]
+    if cfg.law_comparison:  # the grid's variant under the other law, from every start
+        other = "target" if cfg.law == "eq8" else "eq8"
+        jobs += [
+            job(f"law/{i}/{other}", "law", i, replace(base, variant=LAW_VARIANT, law=other))
+            for i in range(len(starts))
         ]
     if cfg.guess_comparison:
         for g in ("kinematic", "identity"):

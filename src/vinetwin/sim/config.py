@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Literal, get_args
 
 from vinetwin._config import JsonFields
 from vinetwin.errors import InputError
-from vinetwin.servo.config import Limits, ServoConfig, Variant, check_finite
+from vinetwin.servo.config import Law, Limits, ServoConfig, Variant, check_finite
 from vinetwin.sim.paper import PRESETS
 
 if TYPE_CHECKING:
@@ -166,6 +166,11 @@ class CampaignConfig(JsonFields):
     """How far it turns (rotation vector, rad)."""
     guess_comparison: bool = True
     """Add point-to-plane runs with and without the kinematic initial guess (paper Fig. 4)."""
+    law: Law = "eq8"
+    """Control law of the runs: eq8 (the paper's) or target (keeps the cut in view)."""
+    law_comparison: bool = True
+    """Add point-to-plane runs under the other law from every start (the report compares the
+    laws: convergence, time, the cut's path in the image)."""
     faults: tuple[FaultClass, ...] = ()
     """Add a fault-injection run per listed class and variant (from the first start; classes:
     drop, stall, zero, nan, half_nan, stale, duplicate, jerk, leaf, lost_command)."""

@@ -99,6 +99,7 @@ def build_rig(
     sensor: SensorConfig | None = None,
     safety: SafetyConfig | None = None,
     watchdog: float | None = None,
+    cut: Array | None = None,
 ) -> Rig:
     """The servo towards `reference` (rendered at `goal`, a camera pose in the vine frame), its
     first guess off by the configured registration error, a simulated arm whose camera is at
@@ -106,9 +107,12 @@ def build_rig(
 
     With `arm` (a `sim.panda.PandaArm` whose scene holds the vine at `arm.T_base_vine`) the arm
     first reaches the start pose (a start it cannot reach raises InputError); without it the
-    camera flies freely. `rng` draws the registration error, then the camera's noise."""
+    camera flies freely. `rng` draws the registration error, then the camera's noise. `cut`
+    (the cut point in the vine frame) is the target of the view-keeping law (`--law target`;
+    None: the reference cloud's median point)."""
     cfg = config
-    servo = make_servo(reference, backend.camera, perception, cfg, cfg.limits, safety)
+    target = None if cut is None else transform_points(invert(goal), np.asarray(cut)[None])[0]
+    servo = make_servo(reference, backend.camera, perception, cfg, cfg.limits, safety, target)
     servo.reset(invert(believed_goal(goal, cfg, rng)) @ start)
     limits = CommandLimits(
         **cfg.limits.to_dict(), **({} if watchdog is None else {"watchdog": watchdog})
@@ -170,7 +174,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
         )  # fmt: skip
     rig = build_rig(
         backend, goal, start, reference_cloud(twin, pose.id), twin.perception, sim, rng,
-        arm=arm, T_flange_camera=twin.T_flange_camera, watchdog=cfg.limits.watchdog,
+        arm=arm, T_flange_camera=twin.T_flange_camera, watchdog=cfg.limits.watchdog, cut=cut,
     )  # fmt: skip
     return Session(
         rig.servo,

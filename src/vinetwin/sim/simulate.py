@@ -38,7 +38,7 @@ import numpy as np
 
 from vinetwin.capture.folder import CaptureWriter
 from vinetwin.cloud import PerceptionConfig
-from vinetwin.frames import Array, pose_error
+from vinetwin.frames import Array, invert, pose_error, transform_points
 from vinetwin.render.backends import DepthBackend
 from vinetwin.render.reference import render_reference
 from vinetwin.render.sensor import SensorConfig
@@ -65,6 +65,16 @@ class SimRun:
     compute: list[float] = field(default_factory=list)
     reasons: dict[str, int] = field(default_factory=dict)
     wall: float = 0.0
+    cut_uv: list[list[float]] = field(default_factory=list)
+    """The cut point's pixel (u, v) in each frame (NaN behind the camera)."""
+    cut_outside: int = 0
+    """Frames whose image did not hold the cut point."""
+    reacquisitions: int = 0
+    """Frames trusted by the wide search after a streak of refusals."""
+    lost: str = ""
+    """The servo's "lost the vine" stop, when it ended the run."""
+    longest_refusal_s: float = 0.0
+    """The longest streak of refused frames (s, first to last refused stamp)."""
     faults: dict[str, Any] | None = None
     """With fault injection: what was injected and how the servo coped (`faults.fault_summary`)."""
 
@@ -99,6 +109,10 @@ class SimRun:
             "frames": len(t),
             "refused": int(len(self.trusted) - sum(self.trusted)),
             "refusal_reasons": dict(self.reasons),
+            "reacquisitions": self.reacquisitions,
+            "cut_outside_frames": self.cut_outside,
+            "lost": self.lost,
+            "longest_refusal_s": self.longest_refusal_s,
             "simulated_s": sim_time,
             "loop_rate_hz": (len(t) - 1) / sim_time if sim_time > 0 else math.nan,
             "compute_ms": 1000 * float(np.median(self.compute)) if self.compute else math.nan,
@@ -116,6 +130,7 @@ class SimRun:
             "error_r": self.error_r[sl],
             "trusted": self.trusted[sl],
             "position": [T[:3, 3].tolist() for T in self.T[sl]],
+            "cut_uv": self.cut_uv[sl],
         }
 
 
@@ -134,6 +149,7 @@ def simulate(
     arm: Any = None,
     log: CycleLog | None = None,
     record: str | Path | None = None,
+    cut: Array | None = None,
 ) -> SimRun:
     """One closed-loop run from `start` to `goal` (camera poses in the vine frame), through
     `loop.run_loop`, the loop that drives hardware.
@@ -142,7 +158,9 @@ def simulate(
     camera is the D405 on the Panda's hand: the arm first reaches the start pose (a start it
     cannot reach raises InputError), then each twist drives its joints. Without it the camera
     flies freely. `log` receives every cycle (with the true error); `record` writes the frames,
-    with their stamps and robot poses, as a capture folder that `FolderSource` replays."""
+    with their stamps and robot poses, as a capture folder that `FolderSource` replays. `cut`:
+    the cut point in the vine frame (default: 15 cm along the goal camera's axis), the target
+    of `--law target` and the point whose image path `SimRun.cut_uv` records."""
     cfg = config
     camera = backend.camera
     sensor = sensor or SensorConfig()
@@ -150,17 +168,17 @@ def simulate(
     rng = np.random.default_rng(cfg.seed)
     ref = render_reference(backend, goal, perception, sensor, reference_seed).cloud
     run = SimRun(cfg, pose_id, np.asarray(goal, float), np.asarray(start, float), dist)
+    cut = goal[:3, 3] + 0.15 * goal[:3, 2] if cut is None else np.asarray(cut, float)
     rig = build_rig(
         backend, goal, start, ref, perception, cfg, rng, arm=arm, disturbance=dist,
-        sensor=sensor, safety=safety,
+        sensor=sensor, safety=safety, cut=cut,
     )  # fmt: skip
     servo, robot = rig.servo, rig.robot
     source: Any = rig.source
     faulty = None
-    if cfg.faults.classes:  # the cut: on the reference camera's axis at its standoff
+    if cfg.faults.classes:
         from vinetwin.sim.faults import FaultySource
 
-        cut = goal[:3, 3] + 0.15 * goal[:3, 2]
         source = faulty = FaultySource(rig.source, cfg.faults, cut)
         robot.expire_after = robot.limits.watchdog  # commands expire, as a Franka's do
     cycles: list[dict[str, Any]] = []
@@ -178,6 +196,14 @@ def simulate(
         run.T.append(source.T.copy())
         run.error_t.append(et)
         run.error_r.append(er)
+        p = transform_points(invert(source.T_rel), cut[None])[0]  # the cut in the camera
+        run.cut_uv.append(
+            [float(camera.fx * p[0] / p[2] + camera.cx), float(camera.fy * p[1] / p[2] + camera.cy)]
+            if p[2] > 1e-6
+            else [math.nan, math.nan]
+        )
+        u, v = run.cut_uv[-1]
+        run.cut_outside += int(not (0 <= u < camera.width and 0 <= v < camera.height))
         run.trusted.append(r.trusted)
         run.compute.append(sum(r.timings.values()))
         if not r.trusted:
@@ -201,7 +227,7 @@ def simulate(
 
     wall0 = time.perf_counter()
     try:
-        run_loop(
+        summary = run_loop(
             servo, source, robot, LoopConfig(settle=0.0), log=log, check_latency=False,
             on_cycle=on_cycle,
         )  # fmt: skip
@@ -209,8 +235,26 @@ def simulate(
         if writer is not None:
             writer.close()
     run.wall = time.perf_counter() - wall0
+    run.reacquisitions, run.lost = summary.reacquisitions, summary.lost
+    run.longest_refusal_s = longest_refusal(run.t, run.trusted)
     if faulty is not None:
         from vinetwin.sim.faults import fault_summary
 
         run.faults = fault_summary(faulty.log, cycles, robot.limits, run.t[-1] if run.t else 0.0)
     return run
+
+
+def longest_refusal(t: list[float], trusted: list[bool]) -> float:
+    """The longest streak of refused frames (s, from its first refused stamp to the first
+    trusted one after it, or to the run's last frame)."""
+    best, since = 0.0, None
+    for ti, ok in zip(t, trusted, strict=True):
+        if ok:
+            if since is not None:
+                best = max(best, ti - since)
+            since = None
+        elif since is None:
+            since = ti
+    if since is not None and t:
+        best = max(best, t[-1] - since)
+    return float(best)
