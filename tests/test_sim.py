@@ -10,6 +10,7 @@ import pytest
 
 from tests.conftest import VineViews
 from vinetwin import frames as fr
+from vinetwin.sim import report
 from vinetwin.sim.campaign import run_campaign
 from vinetwin.sim.config import CampaignConfig, Disturbance, SimConfig
 from vinetwin.sim.paper import PRESETS
@@ -103,7 +104,8 @@ def test_campaign_writes_every_cell_and_plot(vine_views: VineViews, tmp_path: Pa
     data = run_campaign(vine_views.twin, cfg, tmp_path)
     names = {p.name for p in tmp_path.iterdir()}
     for fn in ("campaign.json", "report.md", "report.html", "fig5_errors.png",
-               "fig5_trajectories.png", "fig6_disturbance.png", "fig4_guess.png"):  # fmt: skip
+               "fig5_trajectories.png", "fig6_disturbance.png", "fig4_guess.png",
+               "fig_laws.png"):  # fmt: skip
         assert fn in names
     assert (tmp_path / "fig5_errors.png").stat().st_size > 20_000
     saved = json.loads((tmp_path / "campaign.json").read_text())
@@ -113,6 +115,7 @@ def test_campaign_writes_every_cell_and_plot(vine_views: VineViews, tmp_path: Pa
         == [
             "grid/0/point_to_plane",
             "grid/0/symmetric",
+            "law/0/target",
             "guess/kinematic",
             "guess/identity",
         ]
@@ -127,6 +130,13 @@ def test_campaign_writes_every_cell_and_plot(vine_views: VineViews, tmp_path: Pa
     for line in grid:  # every cell filled but the paper's (the quick preset is not the paper's)
         cells = [c.strip() for c in line.strip("|").split("|")]
         assert "-" not in cells[:-1] and cells[-1] == "-", cells
+    # the control laws compared: point-to-plane under eq. 8 and the view-keeping law, the cut
+    # in view throughout and its image path nearly straight under the latter
+    laws = {r["law"]: r for r in report.law_rows(saved)}
+    assert set(laws) == {"eq8", "target"}
+    assert laws["target"]["converged"] == "yes" and laws["target"]["cut outside (frames)"] == "0"
+    assert 1.0 <= float(laws["target"]["image path"]) < 1.2, laws
+    assert "## Control laws" in md
 
 
 def test_unknown_simulation_is_named() -> None:

@@ -93,9 +93,10 @@ class ICPConfig:
     min_correspondences: int = 20
     """Fewer accepted pairs than this is a failure."""
     min_overlap: float = 0.2
-    """A result pairing less than this share of the smaller cloud at the final level is a
-    failure ("diverged"), whatever its update size said: an estimate that wandered off along
-    the canes can stop moving with a tenth of its points paired (a held-out vine's 2 mm view,
+    """A result pairing less than this share of the smaller cloud, or covering less than this
+    share of the reference (`ICPResult.coverage`), at the final level is a failure
+    ("diverged"), whatever its update size said: an estimate that wandered off along the canes
+    can stop moving with a tenth of its points paired (a held-out vine's 2 mm view,
     point-to-plane from 2 cm / 3 deg: 184 mm off, fitness 0.11). 0: no check."""
     huber_delta: float = 0.0
     """LM only: Huber kernel width (m); 0 disables the robust kernel."""
@@ -150,6 +151,8 @@ class ICPResult:
     overlap: float = 0.0
     """Accepted pairs over the size of the smaller cloud: near 1 when one view holds the other
     (a camera far from its goal sees more than the reference, and its fitness is low)."""
+    coverage: float = 0.0
+    """Share of the reference's points (final level) paired with some current point."""
     inlier_rmse: float = float("nan")
     """RMS point-to-point distance of the accepted pairs (m)."""
     correspondences: int = 0
@@ -321,6 +324,7 @@ class ICP:
             status == K.CONVERGED,
             fitness=n_ok / len(src),
             overlap=n_ok / min(len(src), len(self.reference.points)),
+            coverage=len(np.unique(idx[ok])) / max(len(t.points), 1),
             inlier_rmse=float(np.sqrt(d2[ok].mean())) if n_ok else float("nan"),
             correspondences=n_ok,
             iterations=total,
@@ -335,10 +339,11 @@ class ICP:
         if result.converged and n_ok < cfg.min_correspondences:
             result.converged = False
             result.reason = f"too few correspondences ({n_ok} < {cfg.min_correspondences}) within {lv.dmax:.4f} m"
-        elif result.converged and result.overlap < cfg.min_overlap:
+        elif result.converged and min(result.overlap, result.coverage) < cfg.min_overlap:
             result.converged = False
             result.reason = (
-                f"diverged: only {100 * result.overlap:.0f}% of the smaller cloud paired within "
+                f"diverged: {100 * result.overlap:.0f}% of the smaller cloud paired and "
+                f"{100 * result.coverage:.0f}% of the reference covered within "
                 f"{1000 * lv.dmax:.1f} mm (minimum {100 * cfg.min_overlap:.0f}%)"
             )
         if result.converged:

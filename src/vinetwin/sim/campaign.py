@@ -227,6 +227,7 @@ def run_campaign(
         "twin": twin.name,
         "config": cfg.to_dict(),
         "starts": [list(s) for s in PRESETS[cfg.preset]],
+        "image_size": [twin.camera.width, twin.camera.height],
         "workers": workers,
         "resumed": len(jobs) - len(todo),
         "runs": results,

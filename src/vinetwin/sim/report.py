@@ -33,6 +33,18 @@ FIGURES = (
         "fig4_guess.png",
         "Point-to-plane with and without the kinematic initial guess (paper Fig. 4).",
     ),
+    (
+        "fig_laws.png",
+        "The cut point's path in the image under each control law (point-to-plane, per start; "
+        "the frame is the image, a cross marks the goal pixel).",
+    ),
+)
+LAWS_NOTE = (
+    "Point-to-plane from every start under eq. 8 (the paper's law: the camera's centre moves on "
+    "a straight line) and under the view-keeping law (`--law target`: PBVS on the cut point and "
+    "theta*u, the cut's image moves on a straight line). Cut outside: frames whose image did not "
+    "hold the cut point. Image path: the length of the cut's pixel path over the straight "
+    "distance from its first to its last pixel (1: a straight line)."
 )
 
 
@@ -74,6 +86,9 @@ def table_rows(data: dict[str, Any]) -> list[dict[str, str]]:
                 "loop (Hz)": _fmt(s["loop_rate_hz"], 1, 1),
                 "compute (ms)": _fmt(s["compute_ms"], 1, 1),
                 "refused frames": str(s["refused"]),
+                "longest refusal (s)": _fmt(s.get("longest_refusal_s"), 1, 2),
+                "re-acquired": str(s.get("reacquisitions", "-")),
+                "stop": _stop(s),
                 "paper (real robot)": paper,
             }
         )
@@ -94,6 +109,8 @@ def other_rows(data: dict[str, Any], group: str) -> list[dict[str, str]]:
             "convergence (s)": _conv(s),
             "refused frames": str(s["refused"]),
             "refusals": ", ".join(f"{k} x{v}" for k, v in s["refusal_reasons"].items()) or "-",
+            "re-acquired": str(s.get("reacquisitions", "-")),
+            "stop": _stop(s),
         }
         if group == "disturbance":
             ct = s["convergence_time"]
@@ -142,6 +159,50 @@ def fault_rows(data: dict[str, Any]) -> list[dict[str, str]]:
     return rows
 
 
+def _stop(s: dict[str, Any]) -> str:
+    """The servo's named stop: "lost the vine", or "none"."""
+    return "lost the vine" if s.get("lost") else "none"
+
+
+def _path_ratio(uv: list[list[float]]) -> float:
+    """The pixel path's length over its chord (1: straight); NaN without two finite pixels."""
+    a = np.asarray(uv, dtype=float).reshape(-1, 2)
+    a = a[np.all(np.isfinite(a), axis=1)]
+    if len(a) < 2:
+        return math.nan
+    chord = float(np.linalg.norm(a[-1] - a[0]))
+    length = float(np.linalg.norm(np.diff(a, axis=0), axis=1).sum())
+    return length / chord if chord > 1.0 else math.nan
+
+
+def law_rows(data: dict[str, Any]) -> list[dict[str, str]]:
+    """Per start, point-to-plane under both laws (the grid's runs and the "law" group's)."""
+    law = data["config"].get("law", "eq8")
+    rows = []
+    for r in data["runs"]:
+        s = r["summary"]
+        if r["group"] == "grid" and s["variant"] == "point_to_plane":
+            this = law
+        elif r["group"] == "law":
+            this = r["key"].split("/")[-1]
+        else:
+            continue
+        rows.append(
+            {
+                "start": str(r["start_index"] + 1),
+                "law": this,
+                "final t (mm)": _fmt(s["final_translation"], 1000),
+                "final r (rad)": _fmt(s["final_rotation"], 1, 4),
+                "converged": "yes" if s["converged"] else "no",
+                "convergence (s)": _conv(s),
+                "cut outside (frames)": str(s.get("cut_outside_frames", "-")),
+                "image path": _fmt(_path_ratio(r["series"].get("cut_uv", [])), 1, 2),
+                "stop": _stop(s),
+            }
+        )
+    return sorted(rows, key=lambda row: (row["start"], row["law"]))
+
+
 def _markdown_table(rows: list[dict[str, str]]) -> str:
     if not rows:
         return "(no runs)\n"
@@ -185,6 +246,7 @@ def write_report(data: dict[str, Any], out_dir: Path) -> None:
     plot_trajectories(data, out_dir / FIGURES[1][0])
     plot_group(data, "disturbance", out_dir / FIGURES[2][0])
     plot_group(data, "guess", out_dir / FIGURES[3][0])
+    plot_laws(data, out_dir / FIGURES[4][0])
     cfg = data["config"]
     defs = (
         "Final static error: median true error over the last 0.5 s. Converged: that error within "
@@ -200,6 +262,9 @@ def write_report(data: dict[str, Any], out_dir: Path) -> None:
         ("guess", "With and without the initial guess"),
     ):
         md += [f"\n## {name}\n", _markdown_table(other_rows(data, group))]
+    laws = law_rows(data)
+    if any(r["law"] != cfg.get("law", "eq8") for r in laws):
+        md += ["\n## Control laws\n", LAWS_NOTE + "\n", _markdown_table(laws)]
     faults = fault_rows(data)
     if faults:
         md += ["\n## Fault injection\n", FAULTS_NOTE + "\n", _markdown_table(faults)]
@@ -219,6 +284,8 @@ def write_report(data: dict[str, Any], out_dir: Path) -> None:
         ("guess", "With and without the initial guess"),
     ):
         parts += [f"<h2>{name}</h2>", _html_table(other_rows(data, group))]
+    if any(r["law"] != cfg.get("law", "eq8") for r in laws):
+        parts += ["<h2>Control laws</h2>", f"<p>{html.escape(LAWS_NOTE)}</p>", _html_table(laws)]
     if faults:
         parts += ["<h2>Fault injection</h2>", f"<p>{html.escape(FAULTS_NOTE)}</p>"]
         parts.append(_html_table(faults))
@@ -332,6 +399,42 @@ def plot_group(data: dict[str, Any], group: str, path: Path) -> None:
     plt.close(fig)
 
 
+def plot_laws(data: dict[str, Any], path: Path) -> None:
+    """The cut's pixel path per start, one colour per law (an empty figure without cut paths)."""
+    plt = _plt()
+    law = data["config"].get("law", "eq8")
+    runs: dict[int, list[tuple[str, list[list[float]]]]] = {}
+    for r in data["runs"]:
+        s = r["summary"]
+        if r["group"] == "grid" and s["variant"] == "point_to_plane":
+            this = law
+        elif r["group"] == "law":
+            this = r["key"].split("/")[-1]
+        else:
+            continue
+        runs.setdefault(r["start_index"], []).append((this, r["series"].get("cut_uv", [])))
+    n = max(len(runs), 1)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.2), squeeze=False)
+    colors = {"eq8": "tab:green", "target": "tab:purple"}
+    for ax, (i, items) in zip(axes[0], sorted(runs.items()), strict=False):
+        for name, uv in items:
+            a = np.asarray(uv, dtype=float).reshape(-1, 2)
+            if len(a):
+                ax.plot(a[:, 0], a[:, 1], color=colors.get(name), label=name, lw=1.2)
+                ax.plot(a[-1, 0], a[-1, 1], "x", color="k")
+        ax.set_title(f"start {i + 1}")
+        w, h = data.get("image_size", (848, 480))
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_aspect("equal")
+        ax.set_xlabel("u (px)")
+        ax.set_ylabel("v (px)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def print_tables(data: dict[str, Any]) -> None:
     """Prints the campaign's tables (starts x variants, disturbance, initial guess)."""
     from rich.console import Console
@@ -342,6 +445,7 @@ def print_tables(data: dict[str, Any]) -> None:
         (table_rows(data), "starts x variants"),
         (other_rows(data, "disturbance"), "disturbance"),
         (other_rows(data, "guess"), "initial guess"),
+        (law_rows(data) if any(r["group"] == "law" for r in data["runs"]) else [], "laws"),
         (fault_rows(data), "fault injection"),
     ):
         if not rows:
