@@ -237,29 +237,47 @@ class ICP:
         *,
         camera: CameraModel | None = None,
         max_depth: float = np.inf,
+        final_reference: Cloud | None = None,
     ) -> None:
         """`camera` and `max_depth` describe the reference's view (the twin's camera and its
         perception's max_depth); with them, pairs that land within a level's reach of the edge
-        of that view are rejected."""
+        of that view are rejected. `final_reference`: the same view sampled more densely (the
+        reference depth at a finer voxel, `render.reference.dense_cloud`), which the final
+        level pairs against instead: point-to-point and LM then land between the points of the
+        voxel lattice (the overlap and coverage rules still count the reference's own points)."""
         self.config = config or ICPConfig()
         self.reference = reference
+        self._coverage_tree: NNTree | None = None
         need_n = self.config.variant in ("point_to_plane", "symmetric")
         self.problem = _check_cloud(reference, "reference", self.config.min_points, need_n)
         self._levels: list[_Level] = []
         if self.problem:
             return
-        ref_n = reference.normals  # also used by the degeneracy check of every variant
-        cache: dict[float, tuple[NNTree, NDF]] = {}
+        if final_reference is not None:
+            problem = _check_cloud(final_reference, "final reference", 1, need_n)
+            if problem:
+                self.problem = problem
+                return
+        cache: dict[tuple[bool, float], tuple[NNTree, NDF]] = {}
         levels = self.config.levels()
         for i, (voxel, dmax) in enumerate(levels):
-            if voxel not in cache:
-                pts, nrm = _downsample(reference.points, ref_n, voxel)
+            final = i == len(levels) - 1
+            src = final_reference if final and final_reference is not None else reference
+            key = (src is not reference, voxel)
+            if key not in cache:
+                pts, nrm = _downsample(src.points, src.normals, voxel)
                 tree = NNTree(pts)
                 nrm = np.ascontiguousarray(nrm[tree.order]) if nrm is not None else np.zeros((0, 3))
-                cache[voxel] = (tree, nrm)
-            tree, nrm = cache[voxel]
+                cache[key] = (tree, nrm)
+            tree, nrm = cache[key]
+            if final and src is not reference:
+                own = cache.get((False, voxel))
+                self._coverage_tree = (
+                    own[0]
+                    if own is not None
+                    else NNTree(_downsample(reference.points, None, voxel)[0])
+                )
             use = np.ones(len(tree.points), dtype=bool)
-            final = i == len(levels) - 1
             if (
                 camera is not None
                 and self.config.edge_reach_m() > 0
@@ -324,7 +342,7 @@ class ICP:
             status == K.CONVERGED,
             fitness=n_ok / len(src),
             overlap=n_ok / min(len(src), len(self.reference.points)),
-            coverage=len(np.unique(idx[ok])) / max(len(t.points), 1),
+            coverage=self._coverage(src, T, idx[ok], len(t.points), lv.dmax),
             inlier_rmse=float(np.sqrt(d2[ok].mean())) if n_ok else float("nan"),
             correspondences=n_ok,
             iterations=total,
@@ -352,6 +370,14 @@ class ICP:
                 result.converged = False
                 result.reason = degenerate
         return result
+
+    def _coverage(self, src: NDF, T: NDF, idx: Any, n_ref: int, dmax: float) -> float:
+        """The share of the reference's own points paired with some current point."""
+        if self._coverage_tree is None:
+            return len(np.unique(idx)) / max(n_ref, 1)
+        c = self._coverage_tree
+        _, cidx, _ = K.associate(src, T, c.arrays, dmax, _threads())
+        return len(np.unique(cidx[cidx >= 0])) / max(len(c.points), 1)
 
     def _limit_cycle(self, src: tuple[NDF, NDF], lv: Any, T: NDF, code: int) -> str:
         """The final level stopped at its iteration limit: follows it three more iterations.

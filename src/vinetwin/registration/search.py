@@ -2,14 +2,16 @@
 lost the vine (a jerk of the vine, a long occlusion, ICP that slid off along a cane).
 
 Tracking ICP starts from one prediction and has a basin of about a centimetre at its final
-levels. The wide search runs a coarse-to-fine ICP (`ICPConfig.coarse_to_fine`: 16 mm and 8 mm
-voxels first) from the prediction and from 12 hypotheses around it: moved by +-`translation`
-along each axis of the reference camera, and turned by +-`rotation` about each axis through the
-reference cloud's centre. Each converged answer that passes the trust thresholds is a candidate;
-the best is the one pairing the largest share of the clouds (`ICPResult.overlap`), then the
-lowest RMSE. When another candidate, clearly elsewhere, fits nearly as well (a repetitive vine:
+levels. The wide search registers the clouds at 8 mm (16 mm then 8 mm voxels, a reach of three
+voxels) from the prediction and from 12 hypotheses around it: moved by +-`translation` along
+each axis of the reference camera, and turned by +-`rotation` about each axis through the
+reference cloud's centre. The coarse answers, best first by the share of the clouds they pair,
+are then refined at full resolution (`ICPConfig.coarse_to_fine`'s last levels) until two
+distinct ones are known: each refined answer that passes the trust thresholds is a candidate.
+When a second candidate, clearly elsewhere, fits nearly as well as the best (a repetitive vine:
 the next spur looks like this one), the answer is ambiguous and none is given: the caller keeps
-the arm still.
+the arm still. Coarse first keeps a search near 10 ms per hypothesis on 2 cores, also on the
+many points of a camera far from its goal.
 
 It registers with point-to-plane when the reference has normals (the variant with the widest
 basin measured, benchmarks/icp.py), whatever variant tracks: re-acquisition is a separate
@@ -25,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin.camera import CameraModel
-from vinetwin.cloud import Cloud
+from vinetwin.cloud import Cloud, voxel_downsample
 from vinetwin.frames import Array, make_pose, pose_error, so3_exp
 from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
 
@@ -41,6 +43,10 @@ class SearchResult:
     hypotheses: int
     reason: str = ""
     """Why there is no answer (empty with one)."""
+
+
+#: The voxel (m) of the search's coarse stage.
+COARSE_VOXEL = 0.008
 
 
 class WideSearch:
@@ -60,8 +66,30 @@ class WideSearch:
             reference.points
         )
         self.variant = "point_to_plane" if has_normals else variant
+        self.coarse_voxel = COARSE_VOXEL
+        pts, nrm = voxel_downsample(reference.points, self.coarse_voxel, reference.normals)
+        self.coarse = ICP(
+            Cloud(pts, nrm),
+            ICPConfig(
+                variant=self.variant,
+                schedule=((2 * self.coarse_voxel, 6 * self.coarse_voxel),),
+                max_correspondence_distance=3 * self.coarse_voxel,
+                min_points=10,
+                min_correspondences=10,
+            ),
+            camera=camera,
+            max_depth=max_depth,
+        )
+        fine = ICPConfig.coarse_to_fine(self.variant)
         self.icp = ICP(
-            reference, ICPConfig.coarse_to_fine(self.variant), camera=camera, max_depth=max_depth
+            reference,
+            ICPConfig(
+                variant=self.variant,
+                schedule=tuple(lv for lv in fine.schedule if lv[0] == 0.0),
+                max_correspondence_distance=fine.max_correspondence_distance,
+            ),
+            camera=camera,
+            max_depth=max_depth,
         )
         pts = reference.points
         self.centre = pts.mean(0) if len(pts) else np.zeros(3)
@@ -97,29 +125,45 @@ class WideSearch:
         `distinct_translation` / `distinct_rotation` from the best whose overlap is at least
         `ambiguity` times the best's makes the answer ambiguous."""
         hyps = self.hypotheses(prediction, translation, rotation)
+        pts, nrm = voxel_downsample(current.points, self.coarse_voxel, current.normals)
+        small = Cloud(pts, nrm)
+        coarse = [r for r in (self.coarse.align(small, h) for h in hyps) if r.converged]
+        coarse.sort(key=lambda r: (-r.overlap, r.inlier_rmse))
         ok: list[ICPResult] = []
         last_reason = "no hypothesis converged"
-        for h in hyps:
-            r = self.icp.align(current, h)
+        for c in coarse:  # refine, best first, until two distinct answers are known
+            if any(
+                _near(c.T_ref_cur, o.T_ref_cur, distinct_translation, distinct_rotation) for o in ok
+            ):
+                continue
+            r = self.icp.align(current, c.T_ref_cur)
             why = f"ICP failed: {r.reason}" if not r.converged else accept(r)
             if why:
                 last_reason = why
                 continue
+            if any(
+                _near(r.T_ref_cur, o.T_ref_cur, distinct_translation, distinct_rotation) for o in ok
+            ):
+                continue
             ok.append(r)
+            if len(ok) == 2:
+                break
         if not ok:
             return SearchResult(None, 0, len(hyps), f"no hypothesis fits ({last_reason})")
         ok.sort(key=lambda r: (-r.overlap, r.inlier_rmse))
         best = ok[0]
-        for other in ok[1:]:
-            dt, dr = pose_error(other.T_ref_cur, best.T_ref_cur)
-            if (dt > distinct_translation or dr > distinct_rotation) and (
-                other.overlap >= ambiguity * best.overlap
-            ):
-                return SearchResult(
-                    None,
-                    len(ok),
-                    len(hyps),
-                    f"ambiguous: two poses {1000 * dt:.0f} mm / {math.degrees(dr):.1f} deg apart "
-                    f"fit alike (overlap {best.overlap:.2f} and {other.overlap:.2f})",
-                )
+        if len(ok) > 1 and ok[1].overlap >= ambiguity * best.overlap:
+            dt, dr = pose_error(ok[1].T_ref_cur, best.T_ref_cur)
+            return SearchResult(
+                None,
+                len(ok),
+                len(hyps),
+                f"ambiguous: two poses {1000 * dt:.0f} mm / {math.degrees(dr):.1f} deg apart "
+                f"fit alike (overlap {best.overlap:.2f} and {ok[1].overlap:.2f})",
+            )
         return SearchResult(best, len(ok), len(hyps))
+
+
+def _near(a: Array, b: Array, translation: float, rotation: float) -> bool:
+    dt, dr = pose_error(a, b)
+    return dt <= translation and dr <= rotation

@@ -54,6 +54,18 @@ def render_reference(
     return Reference(cloud, depth, seed)
 
 
+def dense_cloud(
+    depth: npt.NDArray[np.float32], camera: Any, perception: PerceptionConfig, factor: int
+) -> Cloud:
+    """The same depth image through the perception chain at `1/factor` of its voxel: the dense
+    reference point-to-point and LM pair their final ICP level against (`ServoConfig.
+    dense_reference`), so their answer is not tied to the lattice of the voxel grid."""
+    from dataclasses import replace
+
+    dense = replace(perception, voxel_size=perception.voxel_size / max(factor, 1))
+    return perceive(depth, camera, dense, normals=True)
+
+
 # ----------------------------------------------------------------------------- files
 def write_ply(path: Path, cloud: Cloud) -> None:
     """Binary little-endian PLY with float32 x y z (and nx ny nz when the cloud has normals)."""

@@ -24,6 +24,10 @@ Variant = Literal["point_to_point", "lm", "point_to_plane", "symmetric"]
 #: (PBVS on the cut point and theta*u, the cut's image on a straight line: `pbvs.target_twist`).
 Law = Literal["eq8", "target"]
 LAWS: tuple[str, ...] = get_args(Law)
+#: The variants that pair their final level against a dense reference (`dense_reference`), and
+#: how much denser it is (the perception voxel divided by this).
+DENSE_VARIANTS = frozenset({"point_to_point", "lm"})
+DENSE_FACTOR = 4
 #: Where each frame's ICP starts (see `servo.step.Servo`).
 Guess = Literal["kinematic", "previous", "identity"]
 GUESSES: tuple[str, ...] = get_args(Guess)
@@ -95,6 +99,10 @@ class SafetyConfig(JsonFields):
     is added."""
     max_jump_rotation: float = 0.05
     """Largest angle (rad) between the estimate and its prediction (same allowance)."""
+    jump_fraction: float = 0.1
+    """Both limits grow by this fraction of the predicted distance (m) and angle (rad) to the
+    goal: far from the vine a view holds more of it and its estimate wanders more from frame to
+    frame, while a slip matters most near the cut, where the limits are tight."""
     max_frame_age: float = 0.1
     """A frame older than this (s) when `step` is called with `now` is stale."""
     reacquire_frames: int = 5
@@ -139,6 +147,10 @@ class ServoConfig(JsonFields):
     """lambda far from the goal."""
     guess: Guess = "kinematic"
     """Where ICP starts each frame: kinematic (eq. 11), previous or identity."""
+    dense_reference: bool = True
+    """Point-to-point and LM: pair the final ICP level against the reference depth seen through
+    the perception chain at a quarter of its voxel (`DENSE_FACTOR`), so they are not held to
+    the voxel lattice (about 1-2 mm at 4 mm voxels; measured in `docs/servo.md`)."""
     law: Law = "eq8"
     """Control law: eq8 (the paper's) or target (keeps the cut in view: its image moves on a
     straight line)."""

@@ -33,7 +33,7 @@ from vinetwin.capture.sources import CameraSource
 from vinetwin.cloud import Cloud
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, invert, pose_error, transform_points
-from vinetwin.servo.config import LoopConfig, RunnerConfig
+from vinetwin.servo.config import LoopConfig, RunnerConfig, ServoConfig
 from vinetwin.servo.loop import Cycle, CycleLog, LoopSummary, run_loop
 from vinetwin.servo.robot import Robot
 from vinetwin.servo.step import Servo, make_servo
@@ -89,6 +89,28 @@ def reference_cloud(twin: Twin, pose_id: str) -> Cloud:
     ).cloud
 
 
+def dense_reference_for(twin: Twin, pose_id: str, config: ServoConfig) -> Cloud | None:
+    """The dense reference of point-to-point and LM (`ServoConfig.dense_reference`): the pose's
+    view rendered from the twin's mesh with its D405 model, through the perception chain at a
+    quarter of its voxel. None for the other variants, or when switched off."""
+    from vinetwin.servo.step import wants_dense
+
+    if not wants_dense(config):
+        return None
+    from vinetwin.render.backends import get_backend
+    from vinetwin.render.reference import dense_cloud, pose_seed, render_reference
+    from vinetwin.render.sensor import SensorConfig
+    from vinetwin.servo.config import DENSE_FACTOR
+
+    mesh = twin.load_mesh()
+    backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
+    pose = twin.pose(pose_id)
+    rendered = render_reference(
+        backend, pose.T_vine_camera, twin.perception, SensorConfig(), pose_seed(0, pose_id)
+    )
+    return dense_cloud(rendered.depth, twin.camera, twin.perception, DENSE_FACTOR)
+
+
 def default_log_path(twin: Twin, pose_id: str) -> Path:
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     return twin.root / "servo" / f"{pose_id}-{stamp}.jsonl"
@@ -126,6 +148,7 @@ def hardware_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessio
     servo = make_servo(
         reference_cloud(twin, pose.id), twin.camera, twin.perception, cfg.servo,
         cfg.limits.speeds(), target=cut_in_camera(twin, pose),
+        dense_reference=dense_reference_for(twin, pose.id, cfg.servo),
     )  # fmt: skip
     T_base_ref = twin.T_world_vine @ np.asarray(pose.T_vine_camera, float)
     robot: Robot | None = None

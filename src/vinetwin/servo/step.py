@@ -38,10 +38,10 @@ import numpy as np
 
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
-from vinetwin.frames import Array, check_pose, invert, pose_error, se3_exp
+from vinetwin.frames import Array, check_pose, invert, pose_error, se3_exp, so3_log
 from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
 from vinetwin.registration.search import WideSearch
-from vinetwin.servo.config import GUESSES, Limits, SafetyConfig, ServoConfig
+from vinetwin.servo.config import DENSE_VARIANTS, GUESSES, Limits, SafetyConfig, ServoConfig
 from vinetwin.servo.pbvs import Gain, kinematic_guess, pbvs_error, pbvs_twist, target_twist
 
 
@@ -91,6 +91,7 @@ class Servo:
         guess: str = "kinematic",
         law: str = "eq8",
         target: Any = None,
+        dense_reference: Cloud | None = None,
     ) -> None:
         """`camera` and `perception` are the twin's: they describe the reference's view (for the
         edge-of-view rejection of ICP) and run the perception chain of `step_depth`. `guess` is
@@ -98,7 +99,8 @@ class Servo:
         trusted estimate, ignoring the robot's motion) or "identity" (no initial guess, as plain
         ICP; the pose-jump rule is then off, having no prediction to compare with). `law` is
         eq8 or target (`pbvs.target_twist`), towards `target`, the cut point in the reference
-        camera frame (None: the median of the reference cloud)."""
+        camera frame (None: the median of the reference cloud). `dense_reference`: the same view
+        sampled more densely, for ICP's final level (`ICP(final_reference=...)`)."""
         if guess not in GUESSES:
             raise ValueError(f"unknown guess '{guess}'; choose one of: {', '.join(GUESSES)}")
         self.guess = guess
@@ -116,7 +118,10 @@ class Servo:
         self.camera = camera
         max_depth = self.perception.max_depth if camera is not None else math.inf
         self.reference = reference
-        self.icp = ICP(reference, self.icp_config, camera=camera, max_depth=max_depth)
+        self.icp = ICP(
+            reference, self.icp_config, camera=camera, max_depth=max_depth,
+            final_reference=dense_reference,
+        )  # fmt: skip
         self.gain = gain
         self.limits = limits or Limits()
         self.safety = safety or SafetyConfig()
@@ -229,7 +234,10 @@ class Servo:
                 )
         elif self._trusted_T is not None and self.guess != "identity":
             jt, jr = pose_error(r.T_ref_cur, guess)
-            allow_t, allow_r = s.max_jump_translation, s.max_jump_rotation
+            allow_t = s.max_jump_translation + s.jump_fraction * float(np.linalg.norm(guess[:3, 3]))
+            allow_r = s.max_jump_rotation + s.jump_fraction * float(
+                np.linalg.norm(so3_log(guess[:3, :3]))
+            )
             if not kinematic:
                 since = max(stamp - self._trusted_stamp, 0.0)
                 allow_t += self.limits.max_linear * since
@@ -395,6 +403,7 @@ def make_servo(
     limits: Limits | None = None,
     safety: SafetyConfig | None = None,
     target: Any = None,
+    dense_reference: Cloud | None = None,
 ) -> Servo:
     """The servo a `ServoConfig` describes, for a twin's camera and perception settings: the one
     the simulation, `vinetwin servo` and the web app build."""
@@ -413,7 +422,13 @@ def make_servo(
         guess=config.guess,
         law=config.law,
         target=target,
+        dense_reference=dense_reference if wants_dense(config) else None,
     )
+
+
+def wants_dense(config: ServoConfig) -> bool:
+    """Whether this servo pairs its final ICP level against a dense reference."""
+    return config.dense_reference and config.variant in DENSE_VARIANTS
 
 
 def _non_finite_share(depth: Any) -> float:

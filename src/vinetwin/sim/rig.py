@@ -100,6 +100,7 @@ def build_rig(
     safety: SafetyConfig | None = None,
     watchdog: float | None = None,
     cut: Array | None = None,
+    dense_reference: Cloud | None = None,
 ) -> Rig:
     """The servo towards `reference` (rendered at `goal`, a camera pose in the vine frame), its
     first guess off by the configured registration error, a simulated arm whose camera is at
@@ -112,7 +113,9 @@ def build_rig(
     None: the reference cloud's median point)."""
     cfg = config
     target = None if cut is None else transform_points(invert(goal), np.asarray(cut)[None])[0]
-    servo = make_servo(reference, backend.camera, perception, cfg, cfg.limits, safety, target)
+    servo = make_servo(
+        reference, backend.camera, perception, cfg, cfg.limits, safety, target, dense_reference
+    )
     servo.reset(invert(believed_goal(goal, cfg, rng)) @ start)
     limits = CommandLimits(
         **cfg.limits.to_dict(), **({} if watchdog is None else {"watchdog": watchdog})
@@ -146,7 +149,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
     or on the MuJoCo Panda (`--robot mujoco`), from a start `cfg.start_translation` /
     `start_rotation` away from the pruning pose that still sees the cut."""
     from vinetwin.render.backends import get_backend
-    from vinetwin.servo.runner import reference_cloud, true_error_of
+    from vinetwin.servo.runner import dense_reference_for, reference_cloud, true_error_of
 
     goal = np.asarray(pose.T_vine_camera, float)
     sim = SimConfig(
@@ -175,6 +178,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
     rig = build_rig(
         backend, goal, start, reference_cloud(twin, pose.id), twin.perception, sim, rng,
         arm=arm, T_flange_camera=twin.T_flange_camera, watchdog=cfg.limits.watchdog, cut=cut,
+        dense_reference=dense_reference_for(twin, pose.id, cfg.servo),
     )  # fmt: skip
     return Session(
         rig.servo,

@@ -40,10 +40,11 @@ from vinetwin.capture.folder import CaptureWriter
 from vinetwin.cloud import PerceptionConfig
 from vinetwin.frames import Array, invert, pose_error, transform_points
 from vinetwin.render.backends import DepthBackend
-from vinetwin.render.reference import render_reference
+from vinetwin.render.reference import dense_cloud, render_reference
 from vinetwin.render.sensor import SensorConfig
-from vinetwin.servo.config import LoopConfig, SafetyConfig
+from vinetwin.servo.config import DENSE_FACTOR, LoopConfig, SafetyConfig
 from vinetwin.servo.loop import Cycle, CycleLog, run_loop
+from vinetwin.servo.step import wants_dense
 from vinetwin.sim.config import Disturbance, SimConfig
 from vinetwin.sim.rig import build_rig
 
@@ -166,12 +167,16 @@ def simulate(
     sensor = sensor or SensorConfig()
     dist = disturbance or Disturbance()
     rng = np.random.default_rng(cfg.seed)
-    ref = render_reference(backend, goal, perception, sensor, reference_seed).cloud
+    rendered = render_reference(backend, goal, perception, sensor, reference_seed)
+    ref = rendered.cloud
+    dense = None
+    if wants_dense(cfg):
+        dense = dense_cloud(rendered.depth, camera, perception, DENSE_FACTOR)
     run = SimRun(cfg, pose_id, np.asarray(goal, float), np.asarray(start, float), dist)
     cut = goal[:3, 3] + 0.15 * goal[:3, 2] if cut is None else np.asarray(cut, float)
     rig = build_rig(
         backend, goal, start, ref, perception, cfg, rng, arm=arm, disturbance=dist,
-        sensor=sensor, safety=safety, cut=cut,
+        sensor=sensor, safety=safety, cut=cut, dense_reference=dense,
     )  # fmt: skip
     servo, robot = rig.servo, rig.robot
     source: Any = rig.source
