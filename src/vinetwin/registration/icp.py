@@ -92,6 +92,13 @@ class ICPConfig:
     """Fewer points than this in a cloud is a failure."""
     min_correspondences: int = 20
     """Fewer accepted pairs than this is a failure."""
+    crop_margin: float = 0.03
+    """With the reference's camera given to ICP: current points that, placed by the initial
+    guess, fall farther than this (m) outside the reference's view (image border, far depth
+    limit) are left out before registering: a camera far from its goal sees three to five
+    times the reference's points, which cost time and pull the estimate along canes the
+    reference never saw (Table 1's start 4, 32 cm away: 4000 points against 700). The fitness
+    and overlap still count every point. 0: keep all."""
     min_overlap: float = 0.2
     """A result pairing less than this share of the smaller cloud, or covering less than this
     share of the reference (`ICPResult.coverage`), at the final level is a failure
@@ -247,6 +254,8 @@ class ICP:
         voxel lattice (the overlap and coverage rules still count the reference's own points)."""
         self.config = config or ICPConfig()
         self.reference = reference
+        self._camera = camera
+        self._max_depth = max_depth
         self._coverage_tree: NNTree | None = None
         need_n = self.config.variant in ("point_to_plane", "symmetric")
         self.problem = _check_cloud(reference, "reference", self.config.min_points, need_n)
@@ -300,6 +309,8 @@ class ICP:
         problem = _check_cloud(current, "current", cfg.min_points, need_n)
         if problem:
             return ICPResult(T, False, reason=problem)
+        full = current
+        current = self._crop(current, T)
         code = K.VARIANT_CODES[cfg.variant]
         total = 0
         status, pairs = K.ITERATION_LIMIT, 0
@@ -332,7 +343,7 @@ class ICP:
             cycle_note = self._limit_cycle(src_cache[lv.voxel], lv, T, code)
             if cycle_note:
                 status = K.CONVERGED
-        src = current.points
+        src = full.points
         t = lv.tree
         q, idx, d2 = K.associate(src, T, t.arrays, lv.dmax, _threads())
         ok = idx >= 0
@@ -370,6 +381,31 @@ class ICP:
                 result.converged = False
                 result.reason = degenerate
         return result
+
+    def _crop(self, current: Cloud, T: NDF) -> Cloud:
+        """The current points that the guess `T` places within `crop_margin` of the
+        reference's view (all of them without a camera, or when too few would remain)."""
+        margin = self.config.crop_margin
+        cam = self._camera
+        if cam is None or margin <= 0:
+            return current
+        p = current.points @ T[:3, :3].T + T[:3, 3]
+        z = np.maximum(p[:, 2], 1e-9)
+        u = cam.fx * p[:, 0] / z + cam.cx
+        v = cam.fy * p[:, 1] / z + cam.cy
+        mu, mv = margin * cam.fx / z, margin * cam.fy / z
+        keep = (
+            (p[:, 2] > 0)
+            & (p[:, 2] < self._max_depth + margin)
+            & (u > -mu)
+            & (u < cam.width + mu)
+            & (v > -mv)
+            & (v < cam.height + mv)
+        )
+        if keep.all() or keep.sum() < self.config.min_points:
+            return current
+        normals = None if current.normals is None else current.normals[keep]
+        return Cloud(current.points[keep], normals)
 
     def _coverage(self, src: NDF, T: NDF, idx: Any, n_ref: int, dmax: float) -> float:
         """The share of the reference's own points paired with some current point."""

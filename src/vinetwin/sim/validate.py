@@ -91,6 +91,7 @@ def _run_group(group: _Group) -> dict[str, Any]:
         "variant": group.variant,
         "success_rate": sum(r["converged"] for r in runs) / len(runs),
         "basin_fraction": basin,
+        "lost": sum(bool(r.get("lost")) for r in runs),
         "runs": runs,
     }
     # written whole and atomically, last: a group is done only once its file exists
@@ -250,6 +251,7 @@ def _summarise(
                 "basin_translation": r["basin_fraction"] * cfg.radius_translation,
                 "basin_rotation": r["basin_fraction"] * cfg.radius_rotation,
                 "starts": len(r["runs"]),
+                "lost": r.get("lost", 0),
             }
         twin.pose(pid).extra["validation"] = {
             "radius_translation": cfg.radius_translation,
@@ -271,7 +273,8 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
         f"# Servo-ability of {summary['twin']}\n",
         f"{cfg['starts']} starts per pose and variant, up to {1000 * cfg['radius_translation']:.0f} mm "
         f"and {cfg['radius_rotation']:.2f} rad away. Each cell: success rate; convergence basin "
-        "(every start this close converged).\n",
+        "(every start this close converged); runs the servo ended with the named stop \"lost the "
+        "vine\", if any.\n",
         "| pose | " + " | ".join(variants) + " |",
         "|---|" + "---|" * len(variants),
     ]
@@ -282,9 +285,10 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
             if "failed" in c:
                 cells.append("failed (run again)")
                 continue
+            lost = f"; {c['lost']} lost" if c.get("lost") else ""
             cells.append(
                 f"{100 * c['success_rate']:.0f}%; {1000 * c['basin_translation']:.0f} mm / "
-                f"{c['basin_rotation']:.2f} rad"
+                f"{c['basin_rotation']:.2f} rad{lost}"
             )
         lines.append(f"| {row['pose']} | " + " | ".join(cells) + " |")
     lines.append("\n![servo-ability map](summary.png)\n")

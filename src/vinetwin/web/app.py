@@ -404,7 +404,7 @@ class App:
         start = start_pose(goal, cut, far_t, far_r, rng, twin.camera, twin.perception.max_depth)
         cfg = SimConfig(variant=cast(Variant, pose.icp_variant))
         try:
-            run = simulate(backend, goal, start, 0, twin.perception, cfg)
+            run = simulate(backend, goal, start, 0, twin.perception, cfg, cut=cut)
         except VinetwinError as exc:
             self.validation.content = f"validation failed: {exc}"
             return
@@ -422,7 +422,10 @@ class App:
             f"**{verdict}**, final error "
             f"{1000 * sm['final_translation']:.2f} mm / {sm['final_rotation']:.4f} rad"
             + (f" in {ct:.1f} s" if ct is not None else "")
-            + f", {sm['refused']} frames refused."
+            + f", {sm['refused']} frames refused"
+            + (f", re-acquired {sm['reacquisitions']} times" if sm["reacquisitions"] else "")
+            + (f". **Stopped: {sm['lost']}**" if sm["lost"] else "")
+            + "."
         )
 
 
