@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -128,7 +128,9 @@ class Servo:
         self.goal_translation = goal_translation
         self.goal_rotation = goal_rotation
         self._max_depth = max_depth
+        self._dense = dense_reference
         self._search: WideSearch | None = None
+        self._tight: ICP | None = None
         self.reset()
 
     def reset(self, initial_guess: Any = None) -> None:
@@ -221,33 +223,15 @@ class Servo:
         t_icp = time.perf_counter() - t0
         timings = {"icp": t_icp}
 
-        reason = f"ICP failed: {r.reason}" if not r.converged else self._untrusted(r)
-        if reason:
-            pass
-        elif self._trusted_T is None and self._guess is not None and self.guess != "identity":
-            jt, jr = pose_error(r.T_ref_cur, guess)
-            if jt > s.max_guess_translation or jr > s.max_guess_rotation:
-                reason = (
-                    f"implausible first estimate: {1000 * jt:.1f} mm / {math.degrees(jr):.2f} deg "
-                    f"from the believed pose (allowed {1000 * s.max_guess_translation:.0f} mm / "
-                    f"{math.degrees(s.max_guess_rotation):.1f} deg)"
-                )
-        elif self._trusted_T is not None and self.guess != "identity":
-            jt, jr = pose_error(r.T_ref_cur, guess)
-            allow_t = s.max_jump_translation + s.jump_fraction * float(np.linalg.norm(guess[:3, 3]))
-            allow_r = s.max_jump_rotation + s.jump_fraction * float(
-                np.linalg.norm(so3_log(guess[:3, :3]))
-            )
-            if not kinematic:
-                since = max(stamp - self._trusted_stamp, 0.0)
-                allow_t += self.limits.max_linear * since
-                allow_r += self.limits.max_angular * since
-            if (jt > allow_t or jr > allow_r) and not self._consistent_jump(r.T_ref_cur, base):
-                reason = (
-                    f"pose jump: the estimate is {1000 * jt:.1f} mm / {math.degrees(jr):.2f} deg "
-                    f"from its prediction (allowed {1000 * allow_t:.1f} mm / "
-                    f"{math.degrees(allow_r):.2f} deg)"
-                )
+        reason = self._judge(r, guess, kinematic, stamp, base, track_jumps=True)
+        if reason and self._trusted_T is not None and self.guess != "identity":
+            # a second opinion from the same prediction without the wide first level: a good
+            # prediction (eq. 11) that the 3 cm level let slide off along the canes
+            t0 = time.perf_counter()
+            tight = self._tight_icp().align(cloud, guess)
+            timings["icp_tight"] = time.perf_counter() - t0
+            if not self._judge(tight, guess, kinematic, stamp, base, track_jumps=False):
+                r, reason = tight, ""
         reacquired = False
         if reason:
             if not reason.startswith("pose jump"):
@@ -291,6 +275,62 @@ class Servo:
         return StepResult(twist, True, "", T, e, at_goal, r, timings, reacquired=reacquired)
 
     # ------------------------------------------------------------------ helpers
+    def _judge(
+        self,
+        r: ICPResult,
+        guess: Array,
+        kinematic: bool,
+        stamp: float,
+        base: Array | None,
+        track_jumps: bool,
+    ) -> str:
+        """Why an alignment is not trusted ("" when it is): ICP's failure, the thresholds, an
+        implausible first estimate, or a pose jump (which, with `track_jumps`, counts towards
+        the consistent-jump rule)."""
+        s = self.safety
+        if not r.converged:
+            return f"ICP failed: {r.reason}"
+        why = self._untrusted(r)
+        if why or self.guess == "identity":
+            return why
+        jt, jr = pose_error(r.T_ref_cur, guess)
+        if self._trusted_T is None:
+            if self._guess is not None and (
+                jt > s.max_guess_translation or jr > s.max_guess_rotation
+            ):
+                return (
+                    f"implausible first estimate: {1000 * jt:.1f} mm / {math.degrees(jr):.2f} deg "
+                    f"from the believed pose (allowed {1000 * s.max_guess_translation:.0f} mm / "
+                    f"{math.degrees(s.max_guess_rotation):.1f} deg)"
+                )
+            return ""
+        allow_t = s.max_jump_translation + s.jump_fraction * float(np.linalg.norm(guess[:3, 3]))
+        allow_r = s.max_jump_rotation + s.jump_fraction * float(
+            np.linalg.norm(so3_log(guess[:3, :3]))
+        )
+        if not kinematic:
+            since = max(stamp - self._trusted_stamp, 0.0)
+            allow_t += self.limits.max_linear * since
+            allow_r += self.limits.max_angular * since
+        if jt <= allow_t and jr <= allow_r:
+            return ""
+        if track_jumps and self._consistent_jump(r.T_ref_cur, base):
+            return ""
+        return (
+            f"pose jump: the estimate is {1000 * jt:.1f} mm / {math.degrees(jr):.2f} deg "
+            f"from its prediction (allowed {1000 * allow_t:.1f} mm / "
+            f"{math.degrees(allow_r):.2f} deg)"
+        )
+
+    def _tight_icp(self) -> ICP:
+        """Tracking ICP without the wide levels: the final level only, from the prediction."""
+        if self._tight is None:
+            self._tight = ICP(
+                self.reference, replace(self.icp_config, schedule=()), camera=self.camera,
+                max_depth=self._max_depth, final_reference=self._dense,
+            )  # fmt: skip
+        return self._tight
+
     def _untrusted(self, r: ICPResult) -> str:
         """Why a converged alignment is not trusted by the thresholds ("" when it is)."""
         s = self.safety
