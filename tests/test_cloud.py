@@ -73,13 +73,32 @@ def test_depth_threshold_and_flying_pixels() -> None:
     z = cloud.points[:, 2]
     assert z.max() < 0.151  # the wall is cut and the flying pixels are dropped
     assert np.all(np.einsum("ij,ij->i", cloud.normals, cloud.points) < 0)  # normals face the camera
+    # the flying-pixel filter is what drops the smeared column: without it the deprojection
+    # keeps it (perception then drops it too, as a rim without a normal: one pixel wide)
+    from vinetwin import _kernels
+
+    args = (depth, cam.fx, cam.fy, cam.cx, cam.cy, 1e-6, 0.40)
+    raw, _ = _kernels.organised_points(*args, 0.0, 2, False)
+    filtered, _ = _kernels.organised_points(*args, 0.03, 2, False)
+    assert raw[:, 2].max() > 0.29 and filtered[:, 2].max() < 0.151
     no_filter = perceive(
-        depth,
-        cam,
-        PerceptionConfig(max_depth=0.40, edge_threshold=0, sor_neighbors=0),
+        depth, cam, PerceptionConfig(max_depth=0.40, edge_threshold=0, sor_neighbors=0),
         normals=False,
-    )
-    assert no_filter.points[:, 2].max() > 0.29
+    )  # fmt: skip
+    assert no_filter.points[:, 2].max() < 0.151
+
+
+def test_points_do_not_depend_on_asking_for_normals() -> None:
+    """Live clouds (no normals) and references (normals) sample a depth image alike."""
+    cam = d405("480x270")
+    rng = np.random.default_rng(3)
+    depth = np.full((cam.height, cam.width), 0.0, np.float32)
+    depth[:, 200:206] = 0.15 + rng.normal(0, 2e-4, (cam.height, 6))  # a thin cane
+    depth[100:104, :] = 0.20  # a cane across
+    a = perceive(depth, cam, PerceptionConfig(), normals=True)
+    b = perceive(depth, cam, PerceptionConfig(), normals=False)
+    assert len(a.points) > 30 and b.normals is None
+    np.testing.assert_array_equal(a.points, b.points)
 
 
 @pytest.mark.parametrize("fill", [0.0, np.nan, np.inf, -1.0])
