@@ -130,11 +130,13 @@ def perceive(
     config: PerceptionConfig | None = None,
     *,
     normals: bool = True,
+    grid_origin: npt.ArrayLike | None = None,
 ) -> Cloud:
     """The perception chain: a z-depth image (H, W) in metres to a filtered cloud in the camera
     frame. Reference clouds and live clouds both come from here.
 
     An empty or all-invalid image (NaN, zeros) gives an empty cloud, never an exception.
+    `grid_origin` anchors the voxel grid (default: the camera's origin; see `voxel_downsample`).
 
     The points do not depend on `normals`: a voxel none of whose pixels has a normal (the rim of
     a cane, two pixels from where its depth ends) is dropped either way, so a live cloud taken
@@ -160,7 +162,7 @@ def perceive(
     )
     if len(pts) == 0:
         return Cloud(np.empty((0, 3)), np.empty((0, 3)) if normals else None)
-    pts, nrm = voxel_downsample(pts, cfg.voxel_size, nrm_all)
+    pts, nrm = voxel_downsample(pts, cfg.voxel_size, nrm_all, grid_origin)
     assert nrm is not None
     keep = statistical_outliers(pts, int(cfg.sor_neighbors), cfg.sor_std_ratio)
     pts, nrm = pts[keep], nrm[keep]

@@ -92,6 +92,7 @@ class Servo:
         law: str = "eq8",
         target: Any = None,
         dense_reference: Cloud | None = None,
+        dither: bool = True,
     ) -> None:
         """`camera` and `perception` are the twin's: they describe the reference's view (for the
         edge-of-view rejection of ICP) and run the perception chain of `step_depth`. `guess` is
@@ -129,6 +130,7 @@ class Servo:
         self.goal_rotation = goal_rotation
         self._max_depth = max_depth
         self._dense = dense_reference
+        self.dither = dither
         self._search: WideSearch | None = None
         self._tight: ICP | None = None
         self.reset()
@@ -170,7 +172,10 @@ class Servo:
                 stamp,
             )
         try:
-            cloud = perceive(depth, self.camera, self.perception, normals=normals)
+            cloud = perceive(
+                depth, self.camera, self.perception, normals=normals,
+                grid_origin=self._dither(stamp),
+            )  # fmt: skip
         except Exception as exc:  # a malformed image is a refused frame, not a crash
             return self._refuse(f"bad depth image: {exc}", stamp)
         t_perception = time.perf_counter() - t0
@@ -330,6 +335,19 @@ class Servo:
                 max_depth=self._max_depth, final_reference=self._dense,
             )  # fmt: skip
         return self._tight
+
+    def _dither(self, stamp: float) -> Array | None:
+        """A voxel-grid origin for this frame, uniform within one voxel and seeded by the frame's
+        stamp (None when `dither` is off). The reference's grid is anchored at its camera's
+        origin; a live grid anchored the same way in its own camera makes the two lattices
+        coincide exactly when the camera is at the goal, and point-to-point (and, less, the
+        other variants) is drawn to that coincidence: its estimate reads zero up to a voxel
+        before the goal (the "lattice floor", 1-2 mm at 4 mm voxels). A grid moved at random
+        every frame turns that pull into noise, which the loop averages out (dithering)."""
+        if not self.dither or not math.isfinite(stamp):
+            return None
+        seed = int.from_bytes(np.float64(stamp).tobytes(), "little")
+        return np.random.default_rng(seed).uniform(0.0, self.perception.voxel_size, 3)
 
     def _untrusted(self, r: ICPResult) -> str:
         """Why a converged alignment is not trusted by the thresholds ("" when it is)."""
