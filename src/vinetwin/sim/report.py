@@ -175,18 +175,24 @@ def _path_ratio(uv: list[list[float]]) -> float:
     return length / chord if chord > 1.0 else math.nan
 
 
-def law_rows(data: dict[str, Any]) -> list[dict[str, str]]:
-    """Per start, point-to-plane under both laws (the grid's runs and the "law" group's)."""
+def law_runs(data: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """(law, run) of the control-law comparison: the grid's point-to-plane runs under the
+    campaign's law and the "law" group's under the other."""
     law = data["config"].get("law", "eq8")
-    rows = []
+    out = []
     for r in data["runs"]:
-        s = r["summary"]
-        if r["group"] == "grid" and s["variant"] == "point_to_plane":
-            this = law
+        if r["group"] == "grid" and r["summary"]["variant"] == "point_to_plane":
+            out.append((law, r))
         elif r["group"] == "law":
-            this = r["key"].split("/")[-1]
-        else:
-            continue
+            out.append((r["key"].split("/")[-1], r))
+    return out
+
+
+def law_rows(data: dict[str, Any]) -> list[dict[str, str]]:
+    """Per start, point-to-plane under both laws."""
+    rows = []
+    for this, r in law_runs(data):
+        s = r["summary"]
         rows.append(
             {
                 "start": str(r["start_index"] + 1),
@@ -402,16 +408,8 @@ def plot_group(data: dict[str, Any], group: str, path: Path) -> None:
 def plot_laws(data: dict[str, Any], path: Path) -> None:
     """The cut's pixel path per start, one colour per law (an empty figure without cut paths)."""
     plt = _plt()
-    law = data["config"].get("law", "eq8")
     runs: dict[int, list[tuple[str, list[list[float]]]]] = {}
-    for r in data["runs"]:
-        s = r["summary"]
-        if r["group"] == "grid" and s["variant"] == "point_to_plane":
-            this = law
-        elif r["group"] == "law":
-            this = r["key"].split("/")[-1]
-        else:
-            continue
+    for this, r in law_runs(data):
         runs.setdefault(r["start_index"], []).append((this, r["series"].get("cut_uv", [])))
     n = max(len(runs), 1)
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.2), squeeze=False)
