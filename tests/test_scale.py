@@ -244,6 +244,7 @@ def test_a_campaign_keeps_its_finished_runs_when_a_worker_dies(
         duration=3.0,
         disturbance=False,
         guess_comparison=False,
+        law_comparison=False,
     )
     out = tmp_path / "campaign"
     executor = ExecutorConfig(workers=2, retries=0)
