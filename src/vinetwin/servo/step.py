@@ -41,7 +41,7 @@ from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.frames import Array, check_pose, invert, pose_error, se3_exp, so3_log
 from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
 from vinetwin.registration.search import WideSearch
-from vinetwin.servo.config import DENSE_VARIANTS, GUESSES, Limits, SafetyConfig, ServoConfig
+from vinetwin.servo.config import DENSE_VARIANTS, GUESSES, LAWS, Limits, SafetyConfig, ServoConfig
 from vinetwin.servo.pbvs import Gain, kinematic_guess, pbvs_error, pbvs_twist, target_twist
 
 
@@ -105,8 +105,8 @@ class Servo:
         if guess not in GUESSES:
             raise ValueError(f"unknown guess '{guess}'; choose one of: {', '.join(GUESSES)}")
         self.guess = guess
-        if law not in ("eq8", "target"):
-            raise ValueError(f"unknown law '{law}'; choose eq8 or target")
+        if law not in LAWS:
+            raise ValueError(f"unknown law '{law}'; choose one of: {', '.join(LAWS)}")
         self.law = law
         if target is not None:
             self.target = np.asarray(target, dtype=np.float64).reshape(3)
