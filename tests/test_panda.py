@@ -152,3 +152,26 @@ def test_panda_servos_to_the_pruning_pose(vine_views: VineViews, robot: str) -> 
     assert s["final_translation"] < 0.002 and s["final_rotation"] < 0.01
     q = arm.q
     assert np.all(q >= arm.lower) and np.all(q <= arm.upper)
+
+
+def test_redundancy_keeps_joints_off_their_limits() -> None:
+    """The seventh joint's freedom pushes a joint near its limit back towards the middle of its
+    range without moving the camera: the camera twist is the one commanded, the same with or
+    without the push, and joints 1 and 3 (each at 90% of its half-range in turn) are driven
+    back towards the middle only with it."""
+    twist = np.array([0.02, -0.01, 0.015, 0.05, -0.03, 0.04])
+    for j in (0, 2):
+        arm = PandaArm()
+        q0 = np.array([0.1, -0.3, 0.2, -2.0, 0.1, 1.8, 0.5])
+        q0[j] = (arm.upper[j] + arm.lower[j]) / 2 + 0.9 * (arm.upper[j] - arm.lower[j]) / 2
+        moved, speed = {}, {}
+        for k in (0.0, 1.0):
+            arm = PandaArm(limit_avoidance=k)
+            arm.set_q(q0)
+            T0, dt = arm.pose(), 1e-4
+            speed[k] = arm.joint_velocities(twist)[j]
+            arm.move(twist, dt)
+            moved[k] = fr.se3_log(fr.invert(T0) @ arm.pose()) / dt
+            np.testing.assert_allclose(moved[k], twist, atol=1e-2 * np.linalg.norm(twist))  # DLS
+        np.testing.assert_allclose(moved[1.0], moved[0.0], atol=1e-4 * np.linalg.norm(twist))
+        assert speed[1.0] < speed[0.0] - 0.2, (j, speed)  # away from the upper limit

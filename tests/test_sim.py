@@ -179,3 +179,49 @@ def test_validate_writes_the_map_and_resumes(sample_twin_dir: Path, tmp_path: Pa
     assert calls == [] and (root / "validation" / "p1.symmetric.json").stat().st_mtime_ns == mtime
     validate(Twin.load(root), ValidateConfig(**{**cfg.to_dict(), "radius_translation": 0.03}))
     assert (root / "validation" / "p1.symmetric.json").stat().st_mtime_ns != mtime
+
+
+def test_an_arm_that_does_not_follow_is_a_named_stop(
+    vine_views: VineViews, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An arm held still (a joint limit, a reflex) while the servo asks it to move: the loop
+    ends with "the arm does not follow" one `follow_window` after the commands began, not a
+    silent stall; an arm that follows is never stopped by the check."""
+    from vinetwin.servo.config import LoopConfig
+    from vinetwin.sim.robots import KinematicRobot
+
+    twin = vine_views.twin
+    goal, start = _goal_and_start(vine_views, seed=0)
+    cfg = SimConfig(variant="point_to_plane", duration=6.0, settle=0.0, fixed_period=1 / 30)
+    monkeypatch.setattr(KinematicRobot, "_apply", lambda self, twist, dt: None)
+    run = simulate(vine_views.backend, goal, start, 1, twin.perception, cfg)
+    assert run.lost.startswith("the arm does not follow: the camera moved 0.0 mm"), run.lost
+    window = LoopConfig().follow_window
+    assert window - 1e-6 <= run.t[-1] <= window + 0.2, run.t[-1]
+    assert report._stop(run.summary()) == "the arm does not follow"
+    monkeypatch.undo()
+    run = simulate(vine_views.backend, goal, start, 1, twin.perception, cfg)
+    assert run.lost == "" and run.summary()["converged"], run.summary()
+
+
+def test_follow_check_judges_the_commanded_against_the_reported_motion() -> None:
+    """`FollowCheck` over a 1 s window at 30 Hz: an arm at half speed passes, one at a tenth is
+    stopped (translation, then rotation alone), and commands too small to judge are not."""
+    from vinetwin.servo.config import LoopConfig
+    from vinetwin.servo.loop import FollowCheck
+
+    def drive(sent: np.ndarray, follow: float, frames: int = 45) -> tuple[int, str]:
+        check, T = FollowCheck(LoopConfig()), np.eye(4)
+        for k in range(frames):
+            why = check.update(k / 30, T, sent)
+            if why:
+                return k, why
+            T = T @ fr.se3_exp(follow * sent / 30)
+        return -1, ""
+
+    assert drive(np.array([0.02, 0, 0, 0, 0, 0]), 0.5) == (-1, "")
+    k, why = drive(np.array([0.02, 0, 0, 0, 0, 0]), 0.1)
+    assert k == 30 and "2.0 mm of the 20.0 mm" in why, (k, why)
+    k, why = drive(np.array([0, 0, 0, 0, 0.1, 0]), 0.0)
+    assert k == 30 and "0.000 rad of the 0.100 rad" in why, (k, why)
+    assert drive(np.array([0.003, 0, 0, 0.01, 0, 0]), 0.0) == (-1, "")  # below the minimums

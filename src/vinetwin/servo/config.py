@@ -189,10 +189,25 @@ class LoopConfig(JsonFields):
     max_cycle: float = 0.1
     """A frame whose command comes later than this after its capture (stamp) sends zero
     instead (s, > 0). The simulation, whose time is simulated, does not check it."""
+    follow_window: float = 1.0
+    """The arm must follow its commands: when, over this long (s), the camera (as the robot's
+    kinematics report it) moved less than `follow_fraction` of the motion sent to it, the run
+    ends with the named stop "the arm does not follow" (a joint limit, a singularity, a
+    collision or a reflex would otherwise hold it still while the servo keeps asking). 0: no
+    check."""
+    follow_fraction: float = 0.3
+    """See `follow_window`."""
+    follow_min_translation: float = 0.005
+    """Commanded motion below which a window is not judged (m)..."""
+    follow_min_rotation: float = 0.03
+    """...and its rotation (rad): the arm may lag a small command."""
 
     def __post_init__(self) -> None:
         check_finite(self, ("frame_timeout", "camera_lost", "max_cycle"), positive=True)
         check_finite(self, ("duration", "settle"))
+        check_finite(self, ("follow_window", "follow_min_translation", "follow_min_rotation"))
+        if not 0.0 < self.follow_fraction < 1.0:
+            raise InputError(f"follow_fraction must be in (0, 1), got {self.follow_fraction}")
         if self.max_frames < 0:
             raise InputError(f"max_frames must be >= 0, got {self.max_frames}")
         if self.camera_lost < self.frame_timeout:

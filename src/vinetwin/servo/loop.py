@@ -10,6 +10,9 @@ Safety, beyond `Servo.step`'s refusals (which already give exactly zero twist):
 - a cycle that took longer than `max_cycle` (frame stamp to command) sends zero instead of its
   stale twist ("overrun");
 - the robot's own watchdog (`robot.CommandLimits.watchdog`) stops it if the loop itself hangs;
+- an arm that does not follow its commands (its camera, as its kinematics report it, moved less
+  than `follow_fraction` of the motion sent over `follow_window` s: a joint limit, a
+  singularity, a collision, a reflex) ends the run ("the arm does not follow");
 - `dry_run` computes and logs every twist and sends none (the robot is only read);
 - an exception anywhere stops the robot before it propagates, as does Ctrl-C.
 
@@ -24,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,9 +69,13 @@ class LoopSummary:
     sent: int = 0
     ended: str = ""
     """Why the loop ended: at goal, duration, frames, end of recording, camera stopped, stopped
-    (callback), lost the vine (see `lost`), interrupted, or the error."""
+    (callback), lost the vine (see `lost`), the arm does not follow (see `stalled`), interrupted,
+    or the error."""
     lost: str = ""
     """The servo's "lost the vine" reason when it ended the run (`SafetyConfig.lost_after`)."""
+    stalled: str = ""
+    """Why the arm was judged not to follow its commands, when that ended the run
+    (`LoopConfig.follow_window`)."""
     reacquisitions: int = 0
     """Frames the wide search trusted after a streak of refusals."""
     at_goal: bool = False
@@ -93,8 +101,8 @@ class LoopSummary:
             lines.append("refused: " + ", ".join(f"{k} x{v}" for k, v in self.reasons.items()))
         if self.reacquisitions:
             lines.append(f"re-acquired by the wide search {self.reacquisitions} times")
-        if self.lost:
-            lines.append(f"STOPPED: {self.lost}")
+        if self.lost or self.stalled:
+            lines.append(f"STOPPED: {self.lost or self.stalled}")
         lines.append(
             f"median cycle {self.median_cycle_ms:.1f} ms, {self.loop_rate_hz:.1f} Hz; "
             f"overruns {self.overruns}, camera timeouts {self.camera_timeouts}"
@@ -157,6 +165,47 @@ def cycle_record(c: Cycle, extra: dict[str, Any] | None = None) -> dict[str, Any
     return rec
 
 
+class FollowCheck:
+    """Does the arm follow its commands? Each cycle adds the motion sent in the previous cycle
+    (|v| dt, |omega| dt, held until this frame) and the motion the robot's kinematics report
+    over the same interval; over `LoopConfig.follow_window` the reported motion must be at least
+    `follow_fraction` of the commanded one (windows with less than `follow_min_translation` /
+    `follow_min_rotation` commanded are not judged). `update` returns the named stop's reason,
+    or "" while the arm follows."""
+
+    def __init__(self, cfg: LoopConfig) -> None:
+        self.cfg = cfg
+        self._prev: tuple[float, Array, Array] | None = None
+        self._window: deque[tuple[float, float, float, float, float]] = deque()
+
+    def update(self, stamp: float, T_base_camera: Array | None, sent: Array) -> str:
+        cfg = self.cfg
+        if cfg.follow_window <= 0 or T_base_camera is None:
+            return ""
+        prev, self._prev = self._prev, (stamp, np.asarray(T_base_camera, float), sent.copy())
+        if prev is None or stamp <= prev[0]:
+            return ""
+        dt = stamp - prev[0]
+        moved_t, moved_r = pose_error(prev[1], T_base_camera)
+        sent_t, sent_r = np.linalg.norm(prev[2][:3]) * dt, np.linalg.norm(prev[2][3:]) * dt
+        self._window.append((stamp, sent_t, sent_r, moved_t, moved_r))
+        while self._window and stamp - self._window[0][0] >= cfg.follow_window:
+            self._window.popleft()
+        if not self._window or stamp - self._window[0][0] + dt < cfg.follow_window - 1e-9:
+            return ""  # the window is not full yet
+        c_t, c_r, m_t, m_r = (sum(w[i] for w in self._window) for i in range(1, 5))
+        if c_t >= cfg.follow_min_translation and m_t < cfg.follow_fraction * c_t:
+            what = f"{1000 * m_t:.1f} mm of the {1000 * c_t:.1f} mm"
+        elif c_r >= cfg.follow_min_rotation and m_r < cfg.follow_fraction * c_r:
+            what = f"{m_r:.3f} rad of the {c_r:.3f} rad"
+        else:
+            return ""
+        return (
+            f"the arm does not follow: the camera moved {what} commanded in the last "
+            f"{cfg.follow_window:g} s (a joint limit, a singularity, a collision or a reflex?)"
+        )
+
+
 def run_loop(
     servo: Servo,
     source: CameraSource,
@@ -181,6 +230,7 @@ def run_loop(
     at_goal_since: float | None = None
     no_frame_since: float | None = None
     send = robot is not None and not cfg.dry_run
+    follow = FollowCheck(cfg)
     try:
         while True:
             frame = source.read(timeout=cfg.frame_timeout)
@@ -243,6 +293,12 @@ def run_loop(
             summary.reacquisitions += int(r.reacquired)
             if r.lost:
                 summary.ended, summary.lost = "lost the vine", r.reason
+                break
+            stalled = follow.update(frame.stamp, T_base_camera, sent) if send else ""
+            if stalled:
+                summary.ended, summary.stalled = "the arm does not follow", stalled
+                if log:
+                    log.write({"event": "stop", "reason": stalled})
                 break
             if end:
                 summary.ended = "stopped"

@@ -56,6 +56,7 @@ class PandaArm:
         vine: tuple[Any, Any] | None = None,
         T_base_vine: Any = None,
         damping: float = 0.02,
+        limit_avoidance: float = 1.0,
     ) -> None:
         mj = _lazy.mujoco()
         path = Path(model) if model else PANDA_DIR / "scene.xml"
@@ -120,6 +121,7 @@ class PandaArm:
             self.vmax = np.asarray(VELOCITY_LIMITS)
         self.site = m.site("d405").id
         self.damping = damping
+        self.limit_avoidance = limit_avoidance
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -170,6 +172,15 @@ class PandaArm:
             if not (blocked & free).any():
                 break
             free &= ~blocked
+        if self.limit_avoidance > 0 and free.sum() > 6:
+            # the redundant degree of freedom keeps the joints off their limits: a push away from
+            # each joint's nearer limit, growing as the cube of its normalised distance from the
+            # middle of its range, projected into the Jacobian's null space (no camera motion)
+            Jf = J[:, free]
+            mid, half = (self.upper + self.lower) / 2, (self.upper - self.lower) / 2
+            push = -self.limit_avoidance * ((q - mid) / half) ** 3
+            N = np.eye(int(free.sum())) - np.linalg.pinv(Jf) @ Jf
+            qdot[free] += N @ push[free]
         scale = float(np.max(np.abs(qdot) / self.vmax))
         return qdot / scale if scale > 1 else qdot
 
@@ -223,7 +234,7 @@ class PandaArm:
 
 
 def goal_placement(
-    goal_vine_camera: Any, position: Any = (0.5, 0.0, 0.35), pitch: float = 0.6
+    goal_vine_camera: Any, position: Any = (0.55, 0.0, 0.5), pitch: float = 0.9
 ) -> Array:
     """T_base_vine that puts a pruning pose's camera at `position` in the robot base, looking
     forward (+x) and `pitch` rad down, the image's x axis to the robot's right: a pose the arm

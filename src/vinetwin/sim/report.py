@@ -160,8 +160,9 @@ def fault_rows(data: dict[str, Any]) -> list[dict[str, str]]:
 
 
 def _stop(s: dict[str, Any]) -> str:
-    """The servo's named stop: "lost the vine", or "none"."""
-    return "lost the vine" if s.get("lost") else "none"
+    """The named stop that ended the run ("lost the vine", "the arm does not follow"), or
+    "none"."""
+    return str(s["lost"]).split(":")[0] if s.get("lost") else "none"
 
 
 def _path_ratio(uv: list[list[float]]) -> float:

@@ -73,7 +73,8 @@ class SimRun:
     reacquisitions: int = 0
     """Frames trusted by the wide search after a streak of refusals."""
     lost: str = ""
-    """The servo's "lost the vine" stop, when it ended the run."""
+    """The named stop that ended the run, with its reason: the servo's "lost the vine" or the
+    loop's "the arm does not follow" (`LoopConfig.follow_window`); "" when none did."""
     longest_refusal_s: float = 0.0
     """The longest streak of refused frames (s, first to last refused stamp)."""
     faults: dict[str, Any] | None = None
@@ -240,7 +241,8 @@ def simulate(
         if writer is not None:
             writer.close()
     run.wall = time.perf_counter() - wall0
-    run.reacquisitions, run.lost = summary.reacquisitions, summary.lost
+    run.reacquisitions = summary.reacquisitions
+    run.lost = summary.lost or summary.stalled
     run.longest_refusal_s = longest_refusal(run.t, run.trusted)
     if faulty is not None:
         from vinetwin.sim.faults import fault_summary

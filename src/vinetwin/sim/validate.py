@@ -273,8 +273,8 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
         f"# Servo-ability of {summary['twin']}\n",
         f"{cfg['starts']} starts per pose and variant, up to {1000 * cfg['radius_translation']:.0f} mm "
         f"and {cfg['radius_rotation']:.2f} rad away. Each cell: success rate; convergence basin "
-        '(every start this close converged); runs the servo ended with the named stop "lost the '
-        'vine", if any.\n',
+        '(every start this close converged); runs that ended with a named stop ("lost the vine", '
+        '"the arm does not follow"), if any.\n',
         "| pose | " + " | ".join(variants) + " |",
         "|---|" + "---|" * len(variants),
     ]
@@ -285,7 +285,7 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
             if "failed" in c:
                 cells.append("failed (run again)")
                 continue
-            lost = f"; {c['lost']} lost" if c.get("lost") else ""
+            lost = f"; {c['lost']} stopped" if c.get("lost") else ""
             cells.append(
                 f"{100 * c['success_rate']:.0f}%; {1000 * c['basin_translation']:.0f} mm / "
                 f"{c['basin_rotation']:.2f} rad{lost}"
