@@ -8,7 +8,8 @@ Applied in this order, all seeded through one `numpy.random.Generator`:
    invalid with probability `edge_invalid`; of the others, a fraction `edge_smear` take a depth
    between the near and the far side (flying pixels), and background pixels next to a cane take
    the cane's depth with probability `edge_fatten` (foreground fattening).
-2. **Axial noise.** Gaussian with standard deviation `z^2 * subpixel / (fx * baseline)`
+2. **Scale and axial noise.** Depth scaled by `1 + bias` (0 by default; the field profile's
+   scale error), then Gaussian with standard deviation `z^2 * subpixel / (fx * baseline)`
    (Intel's stereo RMS model, used as the standard deviation, not squared).
 3. **Dropout.** A fraction `dropout` of valid pixels become invalid, uniformly.
 4. **Range.** Depth below the camera's `min_depth` or above `max_depth` is invalid (0).
@@ -50,6 +51,9 @@ class SensorConfig(JsonFields):
     """Probability that a background pixel next to a near surface takes the near depth."""
     dropout: float = 0.0
     """Fraction of valid pixels dropped uniformly at random."""
+    bias: float = 0.0
+    """Depth scale error: every depth is reported (1 + bias) times its true value (the
+    field profile's `depth_bias`; 0: none)."""
     quantize: bool = True
     """Round depth to the camera's depth unit."""
 
@@ -125,6 +129,8 @@ def apply_d405_model(
     # the rest touches valid pixels only
     vv, vu = np.nonzero(valid)
     z = d[vv, vu].astype(np.float64)
+    if cfg.bias:
+        z *= 1.0 + cfg.bias
     if cfg.noise:
         sub = camera.subpixel if cfg.subpixel is None else cfg.subpixel
         z += rng.standard_normal(len(z)) * (z * z * sub / (camera.fx * camera.baseline))

@@ -250,6 +250,10 @@ class RunnerConfig(JsonFields):
     """Simulation: start this far from the pruning pose (m)."""
     start_rotation: float = 0.1
     """Simulation: and this angle (rad)."""
+    profile: str = "ideal"
+    """Simulation: error profile (ideal, field or a JSON file of the simulator's FieldProfile;
+    see `vinetwin campaign --help`). Its twin source reconstructs the twin once (about a
+    minute; cached in TWIN/field_twins/)."""
     dynamics_factor: float = 0.2
     """franka: fraction of the robot's velocity, acceleration and jerk limits."""
     realtime: bool = True
@@ -260,3 +264,8 @@ class RunnerConfig(JsonFields):
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()
+        if self.profile != "ideal" and self.camera != "sim":
+            raise InputError(
+                f"--profile {self.profile} is a simulation setting: it needs --camera sim (a real "
+                "camera and robot bring their own errors)"
+            )

@@ -187,7 +187,8 @@ class FollowCheck:
             return ""
         dt = stamp - prev[0]
         moved_t, moved_r = pose_error(prev[1], T_base_camera)
-        sent_t, sent_r = np.linalg.norm(prev[2][:3]) * dt, np.linalg.norm(prev[2][3:]) * dt
+        sent_t = float(np.linalg.norm(prev[2][:3])) * dt
+        sent_r = float(np.linalg.norm(prev[2][3:])) * dt
         self._window.append((stamp, sent_t, sent_r, moved_t, moved_r))
         while self._window and stamp - self._window[0][0] >= cfg.follow_window:
             self._window.popleft()

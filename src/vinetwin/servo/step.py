@@ -155,6 +155,28 @@ class Servo:
         self._jumps: list[Array] = []
         self._found: list[Array] = []
 
+    def warm_up(self, depth: Any) -> None:
+        """Compiles what a frame will run (perception, the ICP levels, the tight ICP and the wide
+        search: numba kernels compile on their first call, 10-30 s on a fresh install) on a depth
+        image, from the identity, once per process and variant; the servo's state is untouched.
+        The simulation calls it before its first frame, whose measured processing time would
+        otherwise hold the first twist for as long as the compilation took."""
+        key = (self.icp_config.variant, self._dense is not None)
+        if key in _WARMED or self.camera is None:
+            return
+        cloud = perceive(
+            depth, self.camera, self.perception,
+            normals=self.icp_config.variant == "symmetric", grid_origin=self._dither(0.0),
+        )  # fmt: skip
+        if cloud.points.size:
+            self.icp.align(cloud, np.eye(4))
+            self._tight_icp().align(cloud, np.eye(4))
+            WideSearch(
+                self.reference, variant=self.icp_config.variant, camera=self.camera,
+                max_depth=self._max_depth,
+            ).align(cloud, np.eye(4), translation=0.01, rotation=0.02, accept=self._untrusted)  # fmt: skip
+        _WARMED.add(key)
+
     # ------------------------------------------------------------------ per frame
     def step_depth(
         self, depth: Any, stamp: float, T_base_camera: Any = None, now: float | None = None
@@ -451,6 +473,10 @@ class Servo:
                 )
                 return StepResult(np.zeros(6), False, self.lost, lost=True)
         return StepResult(np.zeros(6), False, reason)
+
+
+#: (variant, dense reference) pairs whose kernels this process has compiled (`Servo.warm_up`).
+_WARMED: set[tuple[str, bool]] = set()
 
 
 def make_servo(

@@ -33,7 +33,7 @@ from vinetwin.files import atomic_write_json, json_sha256, remove_orphan_temp_fi
 from vinetwin.jobstore import JobStore
 from vinetwin.render.reference import pose_seed
 from vinetwin.sim import report
-from vinetwin.sim.config import CampaignConfig, Disturbance, FaultConfig, SimConfig
+from vinetwin.sim.config import CampaignConfig, Disturbance, FaultConfig, FieldProfile, SimConfig
 from vinetwin.sim.paper import PRESETS
 from vinetwin.sim.rig import start_pose
 from vinetwin.sim.simulate import SimRun, simulate
@@ -65,12 +65,16 @@ class _Job:
     """The cut point (vine frame): the view-keeping law's target."""
     context: dict[str, Any] = field(default_factory=dict)
     """The twin, for the worker (`twin_context`)."""
+    reference: dict[str, Any] = field(default_factory=dict)
+    """Under the field profile's twin source: the reconstructed twin's mesh (`mesh_path`,
+    `mesh_sha256`), which renders the reference while the scene stays the true vine."""
 
     def digest(self) -> str:
-        """What this run's result depends on: the job without the mesh's location (its content
-        is in the context's `mesh_sha256`)."""
+        """What this run's result depends on: the job without the meshes' locations (their
+        content is in the `mesh_sha256` entries)."""
         data = asdict(self)
         data["context"] = {k: v for k, v in self.context.items() if k != "mesh_path"}
+        data["reference"] = {k: v for k, v in self.reference.items() if k != "mesh_path"}
         data["format"] = CAMPAIGN_FORMAT
         return json_sha256(data)
 
@@ -83,6 +87,9 @@ class _Job:
 def _run_job(job: _Job) -> dict[str, Any]:
     dist = job.disturbance
     backend, perception = worker_backend(job.context)
+    reference_backend = (
+        worker_backend({**job.context, **job.reference})[0] if job.reference else None
+    )
     run: SimRun = simulate(
         backend,
         np.asarray(job.goal),
@@ -94,6 +101,7 @@ def _run_job(job: _Job) -> dict[str, Any]:
         pose_id=job.pose_id,
         arm=worker_arm(job.context, job.robot, np.asarray(job.goal)),
         cut=None if job.cut is None else np.asarray(job.cut),
+        reference_backend=reference_backend,
     )
     fault_point(job.key, "run")
     return {
@@ -107,12 +115,14 @@ def _run_job(job: _Job) -> dict[str, Any]:
     }
 
 
-def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
-    """The runs of a campaign (start poses drawn here, so every variant shares them)."""
+def plan(twin: Twin, cfg: CampaignConfig, cache: Path | None = None) -> list[_Job]:
+    """The runs of a campaign (start poses drawn here, so every variant shares them). Under the
+    field profile's twin source the reconstructed twin is built here (cached in `cache`)."""
     pose = twin.pose(cfg.pose) if cfg.pose else twin.poses[0]
     cut = twin.cut_point(pose.cut_point).point
     goal = np.asarray(pose.T_vine_camera)
     ref_seed = pose_seed(cfg.seed, pose.id)
+    profile = cfg.field_profile()
     base = SimConfig(
         law=cfg.law,
         duration=cfg.duration,
@@ -120,7 +130,15 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
         fixed_period=cfg.fixed_period,
         limits=cfg.limits,
         seed=cfg.seed,
+        profile=profile,
     )
+    rebuilt: dict[str, Any] = {}
+    if profile.on("twin"):
+        from vinetwin.files import file_sha256
+        from vinetwin.sim.field import reconstructed_twin
+
+        mesh, _ = reconstructed_twin(twin, profile, cfg.seed, cache or twin.root / "field_twins")
+        rebuilt = {"mesh_path": str(mesh), "mesh_sha256": file_sha256(mesh)}
     robot = None if cfg.sim == "kinematic" else cfg.robot
     starts = []
     for i, (t, r) in enumerate(PRESETS[cfg.preset]):
@@ -132,13 +150,27 @@ def plan(twin: Twin, cfg: CampaignConfig) -> list[_Job]:
     def job(key: str, group: str, i: int, sim: SimConfig, dist: Disturbance | None = None) -> _Job:
         return _Job(key, group, i, goal.tolist(), starts[i].tolist(), sim.to_dict(),
                     dist.to_dict() if dist else {}, ref_seed, pose.id, robot,
-                    np.asarray(cut, float).tolist(), ctx)  # fmt: skip
+                    np.asarray(cut, float).tolist(), ctx,
+                    rebuilt if sim.profile.on("twin") else {})  # fmt: skip
 
     jobs = [
         job(f"grid/{i}/{v}", "grid", i, replace(base, variant=v))
         for i in range(len(starts))
         for v in cfg.variants
     ]
+    if profile.sources and cfg.profile_comparison:  # the same grid, ideal
+        jobs += [
+            job(f"ideal/{i}/{v}", "ideal", i, replace(base, variant=v, profile=FieldProfile()))
+            for i in range(len(starts))
+            for v in cfg.variants
+        ]
+    if profile.sources and cfg.ablation:  # each source alone, from the first start
+        jobs += [
+            job(f"ablation/{src}/{v}", "ablation", 0,
+                replace(base, variant=v, profile=replace(profile, sources=(src,))))
+            for src in profile.sources
+            for v in cfg.variants
+        ]  # fmt: skip
     if cfg.disturbance:
         d = Disturbance(
             time=cfg.disturbance_time,
@@ -187,7 +219,14 @@ def run_campaign(
     runs only the missing ones (all of them with `force`). The report is written once every run
     is there; when runs fail, the error names them and nothing else is lost. `copy_json`: also
     copy campaign.json there."""
-    jobs = plan(twin, cfg)
+    jobs = plan(twin, cfg, out_dir / "field_twins")
+    field_twin: dict[str, Any] = {}
+    if cfg.field_profile().on("twin"):  # built by plan; its score, for the report
+        from vinetwin.sim.field import reconstructed_twin
+
+        field_twin = reconstructed_twin(
+            twin, cfg.field_profile(), cfg.seed, out_dir / "field_twins"
+        )[1]
     runs_dir = out_dir / "runs"
     store = JobStore(runs_dir, CAMPAIGN_FORMAT, indent=None).open()
     remove_orphan_temp_files(out_dir)  # left by a campaign killed while writing its report
@@ -230,6 +269,9 @@ def run_campaign(
         "image_size": [twin.camera.width, twin.camera.height],
         "workers": workers,
         "resumed": len(jobs) - len(todo),
+        "field_sources": list(cfg.field_profile().sources),
+        "field_tolerances": list(SimConfig(profile=cfg.field_profile()).tolerances()),
+        "field_twin": field_twin,
         "runs": results,
     }
     atomic_write_json(out_dir / "campaign.json", data)

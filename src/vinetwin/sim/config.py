@@ -93,6 +93,123 @@ class FaultConfig(JsonFields):
             raise InputError(f"fault rate must be within 0..1, got {self.rate}")
 
 
+#: The field profile's error sources (`FieldProfile.sources`), each switchable on its own.
+FieldSource = Literal["twin", "registration", "hand_eye", "kinematics", "timing", "wind", "depth"]
+FIELD_SOURCES: tuple[str, ...] = get_args(FieldSource)
+
+
+@dataclass(frozen=True, kw_only=True)
+class FieldProfile(JsonFields):
+    """The errors a field run adds to the ideal simulation, source by source (`docs/field.md`
+    gives each default's source; `../shared/FIELD.md`'s "E" marks an engineering estimate). A
+    profile is `ideal` (no source), `field` (every source) or a JSON file of these fields
+    (`vinetwin campaign --profile FILE`); `sources` switches each source on or off. Every draw
+    comes from the run's seed, one random stream per source."""
+
+    sources: tuple[FieldSource, ...] = ()
+    """Sources switched on: twin, registration, hand_eye, kinematics, timing, wind, depth."""
+    twin_frames: int = 60
+    """twin: the reference is rendered from a twin reconstructed (TSDF) from this many
+    synthetic D405 frames of the true vine; the scene stays the true vine."""
+    twin_pose_noise_translation: float = 0.001
+    """twin: the capture's robot pose error (m, standard deviation per axis)."""
+    twin_pose_noise_rotation: float = 0.002
+    """twin: and its rotation (rad, per axis)."""
+    twin_voxel: float = 0.0015
+    """twin: the fusion's TSDF voxel (m)."""
+    registration_translation: float = 0.02
+    """registration: where the robot believes the vine is, off by this much (m; the platform's
+    stop after the arrival; replaces the ideal run's `registration_error_translation`)."""
+    registration_rotation: float = 0.035
+    """registration: and by this rotation (rad, 2 degrees)."""
+    hand_eye_translation: float = 0.001
+    """hand_eye: the calibrated T_flange_camera off by this much (m, per axis, fixed per run)."""
+    hand_eye_rotation: float = 0.0087
+    """hand_eye: and by this rotation (rad per axis, 0.5 degrees)."""
+    encoder_translation: float = 0.00005
+    """kinematics: noise of each reported camera pose (m per axis: repeatability, encoders)."""
+    encoder_rotation: float = 0.0001
+    """kinematics: and of its rotation (rad per axis)."""
+    kinematic_scale: float = 0.005
+    """kinematics: the reported motion's scale error (fraction; a calibrated arm's absolute
+    accuracy over the servo's travel; an estimate)."""
+    latency: float = 0.06
+    """timing: from a frame's exposure to its delivery (s; D405 depth at 30 fps)."""
+    stamp_jitter: float = 0.002
+    """timing: error of each frame's time stamp (s, standard deviation)."""
+    frame_drop: float = 0.02
+    """timing: probability that a frame never arrives."""
+    sway_amplitude: float = 0.001
+    """wind: cane sway near the cut point (m, sinusoid along a random direction)."""
+    sway_frequency: float = 3.0
+    """wind: its frequency (Hz)."""
+    base_amplitude: float = 0.0005
+    """wind: the platform's vibration, engine on (m)."""
+    base_frequency: float = 4.0
+    """wind: its frequency (Hz)."""
+    depth_bias: float = 0.005
+    """depth: the D405's depth scale error (fraction of z, fixed per run; an estimate)."""
+    depth_noise_factor: float = 1.5
+    """depth: the stereo noise outdoors, relative to the model's indoor value (an estimate)."""
+    depth_dropout: float = 0.05
+    """depth: fraction of valid pixels lost at random (glare, thin canes)."""
+    settled_translation: float = 0.005
+    """How a field run is judged: converged when its final error is within this (m)..."""
+    settled_rotation: float = 0.05
+    """...and this (rad): the real robot's range in the paper (1.7-4.1 mm, <= 0.045 rad),
+    since the ideal 2 mm / 0.01 rad band is out of reach by design once the twin is wrong."""
+
+    def __post_init__(self) -> None:
+        for src in self.sources:
+            if src not in FIELD_SOURCES:
+                raise InputError(
+                    f"unknown field error source '{src}'; choose from: {', '.join(FIELD_SOURCES)}"
+                )
+        check_finite(self, tuple(f for f in self.__dataclass_fields__ if f != "sources"))
+        if self.twin_frames < 10:
+            raise InputError(f"twin_frames must be >= 10, got {self.twin_frames}")
+        if not (0.0 <= self.frame_drop < 1.0 and 0.0 <= self.depth_dropout < 1.0):
+            raise InputError("frame_drop and depth_dropout must lie in [0, 1)")
+
+    def on(self, source: str) -> bool:
+        return source in self.sources
+
+
+#: The named profiles of `--profile`.
+PROFILES: dict[str, FieldProfile] = {
+    "ideal": FieldProfile(),
+    "field": FieldProfile(sources=get_args(FieldSource)),
+}
+
+
+def load_profile(name: str, sources: tuple[str, ...] | None = None) -> FieldProfile:
+    """`ideal`, `field`, or a JSON file of `FieldProfile` fields (unknown keys are an error, so
+    a typo does not silently leave a source at its default); `sources` replaces its sources."""
+    import json
+    from dataclasses import replace
+    from pathlib import Path
+
+    if name in PROFILES:
+        profile = PROFILES[name]
+    else:
+        path = Path(name)
+        if not path.is_file():
+            raise InputError(
+                f"unknown profile '{name}': give ideal, field or a JSON file of FieldProfile fields"
+            )
+        try:
+            data = json.loads(path.read_text())
+        except ValueError as exc:
+            raise InputError(f"{path}: not JSON ({exc})") from None
+        if not isinstance(data, dict):
+            raise InputError(f"{path}: a profile is a JSON object of FieldProfile fields")
+        unknown = sorted(set(data) - set(FieldProfile.__dataclass_fields__))
+        if unknown:
+            raise InputError(f"{path}: unknown profile fields: {', '.join(unknown)}")
+        profile = FieldProfile.from_dict(data)
+    return profile if sources is None else replace(profile, sources=tuple(sources))  # type: ignore[arg-type]
+
+
 @dataclass(frozen=True, kw_only=True)
 class SimConfig(ServoConfig):
     """One closed-loop run: the servo (`ServoConfig`: variant, gains, guess, goal tolerance),
@@ -118,6 +235,19 @@ class SimConfig(ServoConfig):
     """Seed of the starts, the noise and the registration error."""
     faults: FaultConfig = field(default_factory=FaultConfig)
     """Faults injected into the run (none by default)."""
+    profile: FieldProfile = field(default_factory=FieldProfile)
+    """The field's errors added to the run (`FieldProfile`; default: none, the ideal run)."""
+
+    def tolerances(self) -> tuple[float, float]:
+        """How a run's "converged" is judged (m, rad): the servo's goal tolerance (2 mm / 0.01
+        rad); under a field profile, its `settled_*` band (the real robot's range) where wider."""
+        p = self.profile
+        if not p.sources:
+            return self.converged_translation, self.converged_rotation
+        return (
+            max(self.converged_translation, p.settled_translation),
+            max(self.converged_rotation, p.settled_rotation),
+        )
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -176,13 +306,30 @@ class CampaignConfig(JsonFields):
     drop, stall, zero, nan, half_nan, stale, duplicate, jerk, leaf, lost_command)."""
     fault_rate: float = 0.03
     """Probability per frame of the injected fault."""
+    profile: str = "ideal"
+    """Error profile of the runs: ideal (the twin is the vine, calibration and kinematics
+    exact), field (every source of `FieldProfile`: reconstructed twin, platform registration,
+    hand-eye, kinematics, camera timing, wind, depth) or a JSON file of `FieldProfile` fields."""
+    sources: tuple[FieldSource, ...] = ()
+    """Only these of the profile's error sources (default: the profile's own)."""
+    profile_comparison: bool = True
+    """With a profile other than ideal: also run the grid under the ideal profile (the report
+    shows both beside the paper's real robot)."""
+    ablation: bool = False
+    """With a profile other than ideal: add runs from the first start with each error source
+    alone, per variant (the report's ablation table: which source costs what)."""
     seed: int = 0
     """Seed of the starts, the noise and the registration error."""
     workers: int = 0
     """Processes; 0: one per core. With --ray: the local Ray's CPUs (0: all)."""
 
+    def field_profile(self) -> FieldProfile:
+        """The profile the runs use (`load_profile` of `profile`, restricted to `sources`)."""
+        return load_profile(self.profile, self.sources or None)
+
     def __post_init__(self) -> None:
         self._nested_from_dicts()
+        self.field_profile()  # a bad profile name or file is an error before anything runs
         if self.preset not in PRESETS:
             raise InputError(f"unknown preset '{self.preset}'; choose one of: {', '.join(PRESETS)}")
         _check_variants(self.variants)
@@ -220,9 +367,31 @@ class ValidateConfig(JsonFields):
     """Processes; 0: one per core. With --ray: the local Ray's CPUs (0: all)."""
     force: bool = False
     """Run again what is already validated with the same inputs."""
+    profile: str = "ideal"
+    """Error profile of the runs (see `campaign --profile`): ideal, field or a JSON file. A
+    profile other than ideal keeps its results and map apart, in validation/PROFILE/ (PROFILE:
+    the name, or the file's stem), and judges "converged" by its settled band."""
+    sources: tuple[FieldSource, ...] = ()
+    """Only these of the profile's error sources (default: the profile's own)."""
+
+    def field_profile(self) -> FieldProfile:
+        return load_profile(self.profile, self.sources or None)
+
+    def profile_dir(self) -> str:
+        """The sub-folder of validation/ for this profile ("" for ideal)."""
+        import re
+        from pathlib import Path
+
+        if not self.field_profile().sources:
+            return ""
+        name = self.profile if self.profile in PROFILES else Path(self.profile).stem
+        if self.sources:
+            name += "-" + "-".join(self.sources)
+        return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()
+        self.field_profile()
         _check_variants(self.variants)
         if self.starts < 1:
             raise InputError(f"starts must be >= 1, got {self.starts}")

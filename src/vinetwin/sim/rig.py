@@ -66,11 +66,15 @@ def start_pose(
 
 def believed_goal(goal: Array, config: SimConfig, rng: np.random.Generator) -> Array:
     """Where the robot believes the reference camera is: the goal, off by the configured
-    registration error (the first frame's guess comes from it)."""
-    return goal @ make_pose(
-        so3_exp(_random_vector(rng, config.registration_error_rotation)),
-        _random_vector(rng, config.registration_error_translation),
+    registration error, or the platform's under the field profile's registration source (the
+    first frame's guess comes from it)."""
+    from vinetwin.sim.field import registration_error
+
+    t, r = registration_error(
+        config.profile,
+        (config.registration_error_translation, config.registration_error_rotation),
     )
+    return goal @ make_pose(so3_exp(_random_vector(rng, r)), _random_vector(rng, t))
 
 
 @dataclass
@@ -136,6 +140,12 @@ def build_rig(
         backend, robot, T_base_vine, rng, sensor=sensor, camera_rate=cfg.camera_rate,
         fixed_period=cfg.fixed_period, disturbance=disturbance,
     )  # fmt: skip
+    if cfg.profile.sources:
+        from vinetwin.sim.field import draw_field
+
+        draw = draw_field(cfg.profile, cfg.seed, backend.camera)
+        robot.set_field(draw)
+        source.set_field(draw)
     return Rig(servo, source, robot, T_base_vine)
 
 
@@ -150,6 +160,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
     `start_rotation` away from the pruning pose that still sees the cut."""
     from vinetwin.render.backends import get_backend
     from vinetwin.servo.runner import dense_reference_for, reference_cloud, true_error_of
+    from vinetwin.sim.config import load_profile
 
     goal = np.asarray(pose.T_vine_camera, float)
     sim = SimConfig(
@@ -158,7 +169,28 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
         camera_rate=cfg.camera_rate,
         duration=max(cfg.loop.duration, 1e-3),
         seed=cfg.seed,
+        profile=load_profile(cfg.profile),
     )
+    reference = reference_cloud(twin, pose.id)
+    dense = dense_reference_for(twin, pose.id, cfg.servo)
+    if sim.profile.on("twin"):  # the reference from a reconstructed twin; the scene stays true
+        from vinetwin.mesh import load_mesh
+        from vinetwin.render.reference import pose_seed, render_reference
+        from vinetwin.render.sensor import SensorConfig
+        from vinetwin.sim.field import reconstructed_twin
+
+        path, _ = reconstructed_twin(twin, sim.profile, cfg.seed, twin.root / "field_twins")
+        rebuilt = load_mesh(path)
+        ref_backend = get_backend("open3d", rebuilt.vertices, rebuilt.faces, twin.camera)
+        rendered = render_reference(
+            ref_backend, goal, twin.perception, SensorConfig(), pose_seed(0, pose.id)
+        )
+        reference = rendered.cloud
+        if dense is not None:
+            from vinetwin.render.reference import dense_cloud
+            from vinetwin.servo.config import DENSE_FACTOR
+
+            dense = dense_cloud(rendered.depth, twin.camera, twin.perception, DENSE_FACTOR)
     mesh = twin.load_mesh()
     backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
     rng = np.random.default_rng(cfg.seed)
@@ -176,9 +208,9 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
             vine=(mesh.vertices, mesh.faces), T_base_vine=goal_placement(goal),
         )  # fmt: skip
     rig = build_rig(
-        backend, goal, start, reference_cloud(twin, pose.id), twin.perception, sim, rng,
+        backend, goal, start, reference, twin.perception, sim, rng,
         arm=arm, T_flange_camera=twin.T_flange_camera, watchdog=cfg.limits.watchdog, cut=cut,
-        dense_reference=dense_reference_for(twin, pose.id, cfg.servo),
+        dense_reference=dense,
     )  # fmt: skip
     return Session(
         rig.servo,

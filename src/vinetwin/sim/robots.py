@@ -5,20 +5,32 @@ velocity-controlled camera) and `MujocoRobot` (the D405 on a MuJoCo Panda, `sim.
 from __future__ import annotations
 
 from abc import abstractmethod
+from collections import deque
 from typing import Any
 
 import numpy as np
 
-from vinetwin.frames import Array, check_pose, invert, se3_exp
+from vinetwin.frames import Array, check_pose, invert, make_pose, se3_exp, se3_log, skew, so3_exp
 from vinetwin.servo.robot import CommandLimits, Robot
 
 
 class SimulatedRobot(Robot):
     """A simulated arm in simulated time: `advance(dt)` applies the held twist for dt s (the
-    watchdog is checked against simulated time first)."""
+    watchdog is checked against simulated time first).
+
+    The field profile's robot errors (`sim.field.FieldDraw`, `set_field`): the pose the robot
+    reports (`T_base_camera`, what the servo reads) is the true camera pose (`true_camera`,
+    what the simulated camera sees) times the hand-eye error, its motion since the start scaled
+    by the kinematic error, with encoder noise on each reading; a commanded twist moves the
+    frame the robot believes is the camera. `T_base_camera_at(stamp)` interpolates the reported
+    poses of the past second (frames arrive late under the timing source)."""
 
     def __init__(self, T_flange_camera: Any, limits: CommandLimits | None = None) -> None:
         self.t = 0.0
+        self._field: Any = None
+        self._origin: Array | None = None
+        self._history: deque[tuple[float, Array, Array]] = deque(maxlen=200)
+        """(t, reported pose, true pose) after each advance, under a field profile."""
         self._held = np.zeros(6)
         self._received = 0.0
         self.lose_next_command = False
@@ -29,14 +41,73 @@ class SimulatedRobot(Robot):
         until the next command (set with fault injection, where commands can be lost)."""
         super().__init__(T_flange_camera, limits, clock=lambda: self.t, watchdog_thread=False)
 
+    def set_field(self, draw: Any) -> None:
+        """Applies a `sim.field.FieldDraw`'s robot errors from now on."""
+        self._field = draw
+        self._origin = self.true_camera()
+        self._history.clear()
+        self._remember()
+
+    def true_camera(self) -> Array:
+        """T_base_camera as it really is (the simulated camera renders from it)."""
+        return self._true_camera()
+
+    def _believed(self, T: Array) -> Array:
+        f = self._field
+        if f is None:
+            return T
+        if self._origin is not None and np.any(f.scale):
+            T = T.copy()
+            o = self._origin[:3, 3]
+            T[:3, 3] = o + (1.0 + f.scale) * (T[:3, 3] - o)
+        return T @ f.hand_eye
+
+    def _remember(self) -> None:
+        T = self.true_camera()
+        self._history.append((self.t, self._believed(T), T))
+
+    def _at(self, stamp: float, which: int) -> Array | None:
+        hist = self._history
+        if len(hist) < 2 or not hist[0][0] <= stamp < hist[-1][0]:
+            return None
+        k = next(i for i in range(1, len(hist)) if hist[i][0] > stamp)
+        t0, A, t1, B = hist[k - 1][0], hist[k - 1][which], hist[k][0], hist[k][which]
+        a = 0.0 if t1 <= t0 else (stamp - t0) / (t1 - t0)
+        return A @ se3_exp(a * se3_log(invert(A) @ B))
+
+    def true_camera_at(self, t: float) -> Array:
+        """The true camera pose at simulated time t (within the last second; else now)."""
+        T = self._at(t, 2)
+        return self.true_camera() if T is None else T
+
+    def T_base_camera(self) -> Array:
+        return self._read(self._believed(self.true_camera()))
+
+    def T_base_camera_at(self, stamp: float) -> Array:
+        T = self._at(stamp, 1)
+        return self.T_base_camera() if T is None else self._read(T)
+
+    def _read(self, T: Array) -> Array:
+        """A reading of the reported pose: with encoder noise under the kinematics source."""
+        f = self._field
+        if f is None or not (f.encoder[0] or f.encoder[1]):
+            return T
+        g = f.rngs["kinematics"]
+        return T @ make_pose(so3_exp(g.normal(0, f.encoder[1], 3)), g.normal(0, f.encoder[0], 3))
+
     def advance(self, dt: float) -> None:
         self.check_watchdog()
         run = dt
         if self.expire_after is not None:
             run = min(dt, max(0.0, self._received + self.expire_after - self.t))
         if run > 0:
-            self._apply(self._held, run)
+            twist = self._held
+            if self._field is not None:  # the twist moves the believed camera frame
+                twist = adjoint(self._field.hand_eye) @ twist
+            self._apply(twist, run)
         self.t += dt
+        if self._field is not None:
+            self._remember()
 
     def _receive(self, twist: Array) -> None:
         if self.lose_next_command:
@@ -52,7 +123,21 @@ class SimulatedRobot(Robot):
         self._receive(np.zeros(6))
 
     @abstractmethod
-    def _apply(self, twist: Array, dt: float) -> None: ...
+    def _apply(self, twist: Array, dt: float) -> None:
+        """Moves the true camera by the body twist for dt s."""
+
+    @abstractmethod
+    def _true_camera(self) -> Array: ...
+
+
+def adjoint(T: Array) -> Array:
+    """The 6x6 adjoint of T for twists (v, omega): a body twist of the frame F @ T is the body
+    twist adjoint(T) @ xi of F."""
+    R, p = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = R
+    A[:3, 3:] = skew(p) @ R
+    return A
 
 
 class KinematicRobot(SimulatedRobot):
@@ -71,9 +156,9 @@ class KinematicRobot(SimulatedRobot):
         self._T = check_pose(T_base_camera, "T_base_camera").copy()
 
     def _pose(self) -> Array:
-        return self._T @ invert(self.T_flange_camera)
+        return self.T_base_camera() @ invert(self.T_flange_camera)
 
-    def T_base_camera(self) -> Array:
+    def _true_camera(self) -> Array:
         return self._T.copy()
 
     def _apply(self, twist: Array, dt: float) -> None:
@@ -91,9 +176,9 @@ class MujocoRobot(SimulatedRobot):
         super().__init__(T_fc, limits)
 
     def _pose(self) -> Array:
-        return self.arm.pose() @ invert(self.T_flange_camera)
+        return self.T_base_camera() @ invert(self.T_flange_camera)
 
-    def T_base_camera(self) -> Array:
+    def _true_camera(self) -> Array:
         return self.arm.pose()
 
     def _apply(self, twist: Array, dt: float) -> None:

@@ -50,6 +50,8 @@ class _Group:
     out: str
     context: dict[str, Any]
     """The twin, for the worker (`workers.twin_context`)."""
+    reference: dict[str, Any]
+    """Under a field profile's twin source: the reconstructed twin's mesh (see campaign)."""
 
 
 def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: ValidateConfig) -> str:
@@ -68,17 +70,22 @@ def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: Validate
             "limits": cfg.limits.to_dict(),
             "faults": [list(cfg.faults), cfg.fault_rate],
             "seed": cfg.seed,
+            **({"profile": cfg.field_profile().to_dict()} if cfg.profile_dir() else {}),
         }
     )
 
 
 def _run_group(group: _Group) -> dict[str, Any]:
     backend, perception = worker_backend(group.context)
+    ref = worker_backend({**group.context, **group.reference})[0] if group.reference else None
     goal = np.asarray(group.goal)
     runs = []
     for k, start in enumerate(group.starts):
         sim = SimConfig.from_dict({**group.sim, "seed": group.sim["seed"] + k})
-        run = simulate(backend, goal, np.asarray(start), group.reference_seed, perception, sim)
+        run = simulate(
+            backend, goal, np.asarray(start), group.reference_seed, perception, sim,
+            reference_backend=ref,
+        )  # fmt: skip
         runs.append({"fraction": group.fractions[k], **run.summary()})
         fault_point(f"{group.pose_id}.{group.variant}", f"run{k}")
     basin = 0.0
@@ -129,7 +136,7 @@ def validate_folder(
     summaries = validate_many(twins, cfg, progress, executor)
     if echo is not None:
         for twin in twins:
-            echo((twin.validation_dir / "summary.md").read_text())
+            echo((_store(twin, cfg).folder / "summary.md").read_text())
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_json(json_path, summaries[0] if len(summaries) == 1 else summaries)
@@ -165,17 +172,19 @@ def validate_many(
     for g, err in errors:
         failed[where[id(g)]][(g.pose_id, g.variant)] = err
     for twin in twins:  # a broken pool terminates writers mid-file
-        _store(twin).clean()
+        _store(twin, cfg).clean()
     summaries = []
     for k, (twin, _, _) in enumerate(plans):
         summary = _summarise(twin, cfg, _pose_ids(twin, cfg), results[k], failed[k])
-        _write_map(summary, twin.root / "validation")
+        _write_map(summary, _store(twin, cfg).folder)
         summaries.append(summary)
     return summaries
 
 
-def _store(twin: Twin) -> JobStore:
-    return JobStore(twin.validation_dir, VALIDATION_FORMAT)
+def _store(twin: Twin, cfg: ValidateConfig) -> JobStore:
+    """validation/ for the ideal profile; validation/PROFILE/ for another."""
+    sub = cfg.profile_dir()
+    return JobStore(twin.validation_dir / sub if sub else twin.validation_dir, VALIDATION_FORMAT)
 
 
 def _pose_ids(twin: Twin, cfg: ValidateConfig) -> list[str]:
@@ -187,9 +196,16 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
     pose_ids = _pose_ids(twin, cfg)
     for pid in pose_ids:
         check_id(twin.pose(pid).id, "pose id")  # unknown or unsafe ids fail before any work
-    store = _store(twin).open()  # removes what writers killed in an earlier run left
+    store = _store(twin, cfg).open()  # removes what writers killed in an earlier run left
     mesh_sha = file_sha256(twin.mesh_path)
     ctx = twin_context(twin)
+    profile = cfg.field_profile()
+    rebuilt: dict[str, Any] = {}
+    if profile.on("twin"):
+        from vinetwin.sim.field import reconstructed_twin
+
+        mesh, _ = reconstructed_twin(twin, profile, cfg.seed, store.folder / "field_twins")
+        rebuilt = {"mesh_path": str(mesh), "mesh_sha256": file_sha256(mesh)}
     fractions = [(k + 1) / cfg.starts for k in range(cfg.starts)]
     groups, results = [], {}
     for pid in pose_ids:
@@ -211,8 +227,9 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
             ]  # fmt: skip
             faults = FaultConfig(classes=cfg.faults, rate=cfg.fault_rate, seed=cfg.seed)
             sim = SimConfig(
-                variant=v, duration=cfg.duration, limits=cfg.limits, faults=faults, seed=cfg.seed
-            )
+                variant=v, duration=cfg.duration, limits=cfg.limits, faults=faults, seed=cfg.seed,
+                profile=profile,
+            )  # fmt: skip
             groups.append(
                 _Group(
                     pid,
@@ -225,6 +242,7 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
                     digest,
                     str(out),
                     ctx,
+                    rebuilt,
                 )
             )
     return twin, groups, results
@@ -253,7 +271,7 @@ def _summarise(
                 "starts": len(r["runs"]),
                 "lost": r.get("lost", 0),
             }
-        twin.pose(pid).extra["validation"] = {
+        twin.pose(pid).extra["validation" + (f"_{sub}" if (sub := cfg.profile_dir()) else "")] = {
             "radius_translation": cfg.radius_translation,
             "radius_rotation": cfg.radius_rotation,
             "variants": {v: c for v, c in per_variant.items() if "failed" not in c},
@@ -266,6 +284,19 @@ def _summarise(
     return out
 
 
+def _profile_line(cfg: dict[str, Any]) -> list[str]:
+    """The error profile the runs had, and how they were judged (nothing for ideal runs)."""
+    c = ValidateConfig.from_dict(cfg)
+    p = c.field_profile()
+    if not p.sources:
+        return []
+    t, r = SimConfig(profile=p).tolerances()
+    return [
+        f"Error profile: {c.profile} (sources: {', '.join(p.sources)}); a run converged when its "
+        f"final error is within {1000 * t:.0f} mm / {r:.2f} rad.\n"
+    ]
+
+
 def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
     cfg = summary["config"]
     variants = list(cfg["variants"])
@@ -275,6 +306,7 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
         f"and {cfg['radius_rotation']:.2f} rad away. Each cell: success rate; convergence basin "
         '(every start this close converged); runs that ended with a named stop ("lost the vine", '
         '"the arm does not follow"), if any.\n',
+        *_profile_line(cfg),
         "| pose | " + " | ".join(variants) + " |",
         "|---|" + "---|" * len(variants),
     ]
