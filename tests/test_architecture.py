@@ -20,8 +20,9 @@ ALLOWED: dict[str, set[str]] = {
     "render": {"core", "twin", "render"},
     "reconstruct": {"core", "twin", "capture", "registration", "render", "reconstruct"},
     "servo": {"core", "twin", "capture", "registration", "render", "servo"},
-    "sim": {"core", "twin", "capture", "registration", "render", "servo", "sim"},
-    "web": {"core", "twin", "capture", "registration", "render", "servo", "sim", "web"},
+    "sim": {"core", "twin", "capture", "registration", "render", "reconstruct", "servo", "sim"},
+    "web": {"core", "twin", "capture", "registration", "render", "reconstruct", "servo", "sim",
+            "web"},
     "cli": {"core", "twin", "capture", "registration", "render", "reconstruct", "servo", "sim",
             "web"},
 }  # fmt: skip
