@@ -227,3 +227,39 @@ def test_field_campaign_lands_off_the_ideal_one_but_bounded(
     assert field["final_translation"] < 0.010 and field["lost"] == ""
     md = (tmp_path / "out" / "report.md").read_text()
     assert "## Ideal and field profiles" in md and "counts as converged" in md
+
+
+def test_check_reference_passes_an_unmoved_vine_and_flags_a_moved_or_changed_one(
+    sample_twin_dir: Path, tmp_path: Path
+) -> None:
+    """`vinetwin check-reference --camera sim`: the vine as the twin holds it passes; moved by
+    1 cm it is flagged "vine moved" with the 1 cm found (exit status 1); half the view gone (a
+    leaf, a pruned cane) is "vine changed here"."""
+    import shutil
+
+    from vinetwin.cli import main
+    from vinetwin.servo.check import check_reference, live_depths
+    from vinetwin.servo.config import CheckConfig
+    from vinetwin.servo.runner import reference_cloud
+    from vinetwin.twin.model import Twin
+
+    twin_dir = tmp_path / "vine.twin"
+    shutil.copytree(sample_twin_dir, twin_dir)
+    assert main(["check-reference", str(twin_dir), "--out", str(tmp_path / "ok")]) == 0
+    ok = json.loads((tmp_path / "ok" / "check.json").read_text())
+    assert ok["verdict"] == "twin still valid" and ok["correction_mm"] < 1.0, ok
+    assert (tmp_path / "ok" / "check.png").stat().st_size > 10_000
+    out = tmp_path / "moved"
+    assert main(["check-reference", str(twin_dir), "--sim-offset", "0.01", "0", "0",
+                 "--out", str(out)]) == 1  # fmt: skip
+    moved = json.loads((out / "check.json").read_text())
+    assert moved["verdict"] == "vine moved" and abs(moved["correction_mm"] - 10) < 1.5, moved
+    twin = Twin.load(twin_dir)
+    cfg = CheckConfig(frames=2)
+    depths = live_depths(twin, twin.poses[0].id, cfg)
+    for d in depths:
+        d[:, : d.shape[1] // 2] = 0.0  # half the view holds nothing the twin has there
+    changed, _ = check_reference(
+        twin, twin.poses[0].id, depths, reference_cloud(twin, twin.poses[0].id), cfg
+    )
+    assert changed.verdict == "vine changed here" and "covers" in changed.reason, changed

@@ -16,7 +16,7 @@ from vinetwin.capture.topics import RosTopics
 from vinetwin.errors import VinetwinError
 from vinetwin.progress import with_progress
 from vinetwin.reconstruct.pipeline import ReconstructConfig
-from vinetwin.servo.config import RunnerConfig
+from vinetwin.servo.config import CheckConfig, RunnerConfig
 from vinetwin.sim.config import CampaignConfig, ValidateConfig
 
 log = logging.getLogger("vinetwin")
@@ -47,12 +47,8 @@ class Sample:
         from vinetwin.twin.generator import sample_twin
         from vinetwin.twin.summary import print_summary
 
-        print_summary(
-            sample_twin(
-                self.out, self.seed, cordons=self.cordons, edge=self.edge,
-                cut_points=self.cut_points, overwrite=self.overwrite,
-            )
-        )  # fmt: skip
+        print_summary(sample_twin(self.out, self.seed, cordons=self.cordons, edge=self.edge,
+                                  cut_points=self.cut_points, overwrite=self.overwrite))  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -76,12 +72,8 @@ class ImportVine:
         from vinetwin.twin.importers import import_twin
         from vinetwin.twin.summary import print_summary
 
-        print_summary(
-            import_twin(
-                self.file, self.out, self.format, edge=self.edge, cut_points=self.cut_points,
-                overwrite=self.overwrite,
-            )
-        )  # fmt: skip
+        print_summary(import_twin(self.file, self.out, self.format, edge=self.edge,
+                                  cut_points=self.cut_points, overwrite=self.overwrite))  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -178,8 +170,8 @@ class Preview:
 @dataclass(frozen=True, kw_only=True)
 class Campaign:
     """Servo in simulation from the paper's starts with each ICP variant, plus a disturbance run
-    per variant and runs with and without the initial guess; write a report (Markdown, HTML,
-    PNG plots, JSON)."""
+    per variant and runs with and without the initial guess, ideal or with the field's errors
+    (--profile field, docs/field.md); write a report (Markdown, HTML, PNG plots, JSON)."""
 
     twin: Annotated[Path, Positional]
     """Twin folder."""
@@ -199,13 +191,9 @@ class Campaign:
         from vinetwin.twin.model import Twin
 
         out = self.out or (self.twin / "campaign" / self.config.preset)
-        data = with_progress(
-            "simulating",
-            lambda progress: run_campaign(
-                Twin.load(self.twin), self.config, out, progress,
-                self.cluster.executor(self.config.workers), self.force, copy_json=self.json,
-            ),
-        )  # fmt: skip
+        data = with_progress("simulating", lambda progress: run_campaign(
+            Twin.load(self.twin), self.config, out, progress,
+            self.cluster.executor(self.config.workers), self.force, copy_json=self.json))  # fmt: skip
         print_tables(data)
         log.info("report: %s", out / "report.html")
 
@@ -225,17 +213,9 @@ class Validate:
     def run(self) -> None:
         from vinetwin.sim.validate import validate_folder
 
-        with_progress(
-            "validating",
-            lambda progress: validate_folder(
-                self.twin,
-                self.config,
-                progress,
-                self.cluster.executor(self.config.workers),
-                json_path=self.json,
-                echo=print,
-            ),
-        )
+        with_progress("validating", lambda progress: validate_folder(
+            self.twin, self.config, progress, self.cluster.executor(self.config.workers),
+            json_path=self.json, echo=print))  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -266,6 +246,27 @@ class ServoCmd:
             simulator=simulated_session, mcap=self.mcap,
         )  # fmt: skip
         print(f"{summary.describe()}\nlog: {path}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CheckReference:
+    """Align live frames taken at a pruning pose (the camera sent there) with its reference: twin
+    still valid, vine moved, or vine changed here; check.json and check.png in --out. Exit
+    status 1 when the twin is not valid there (docs/servo.md)."""
+
+    twin: Annotated[Path, Positional]
+    """Twin folder."""
+    config: Annotated[CheckConfig, Nested] = field(default_factory=CheckConfig)
+    out: Path | None = None
+    """Folder for check.json and check.png (default TWIN/checks/POSE)."""
+
+    def run(self) -> None:
+        from vinetwin.servo.check import run_check
+
+        check = run_check(self.twin, self.config, self.out)
+        print(check.describe())
+        if not check.valid:
+            raise SystemExit(1)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -308,13 +309,9 @@ class CaptureSynthetic:
         from vinetwin.twin.model import Twin
 
         twin = Twin.load(self.twin)
-        path = with_progress(
-            "rendering frames",
-            lambda progress: synthetic_capture(
-                twin, self.out, self.frames, self.distance, self.seed, self.pose_noise, progress,
-                self.trajectory,
-            ),
-        )  # fmt: skip
+        path = with_progress("rendering frames", lambda progress: synthetic_capture(
+            twin, self.out, self.frames, self.distance, self.seed, self.pose_noise, progress,
+            self.trajectory))  # fmt: skip
         log.info("capture: %s (%d frames)", path, self.frames)
 
 
@@ -358,13 +355,9 @@ class Reconstruct:
     def run(self) -> None:
         from vinetwin.reconstruct.pipeline import reconstruct
 
-        with_progress(
-            "fusing frames",
-            lambda progress: reconstruct(
-                self.capture, self.twin, self.config, overwrite=self.overwrite,
-                ground_truth=self.ground_truth, progress=progress, json_path=self.json,
-            ),
-        )  # fmt: skip
+        with_progress("fusing frames", lambda progress: reconstruct(
+            self.capture, self.twin, self.config, overwrite=self.overwrite,
+            ground_truth=self.ground_truth, progress=progress, json_path=self.json))  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -419,6 +412,7 @@ COMMANDS: dict[str, type] = {
     "import-recording": ImportRecording,
     "servo": ServoCmd,
     "servo-plot": ServoPlot,
+    "check-reference": CheckReference,
     "reconstruct": Reconstruct,
 }
 

@@ -269,3 +269,35 @@ class RunnerConfig(JsonFields):
                 f"--profile {self.profile} is a simulation setting: it needs --camera sim (a real "
                 "camera and robot bring their own errors)"
             )
+
+
+@dataclass(frozen=True, kw_only=True)
+class CheckConfig(JsonFields):
+    """`vinetwin check-reference`: live frames at a pruning pose against its reference."""
+
+    pose: str = ""
+    """Pruning pose id (default: the twin's first). The camera must be at that pose."""
+    camera: str = "sim"
+    """realsense[:SERIAL] (a live D405), bag:FILE, folder:DIR, or sim (rendered from the twin at
+    the pose, to try the check; see --sim-offset)."""
+    frames: int = 5
+    """Frames to align (the verdict takes their medians)."""
+    max_translation: float = 0.003
+    """A live view that fits the reference further than this from the pose (m)..."""
+    max_rotation: float = 0.02
+    """...or turned more than this (rad) means "vine moved"."""
+    min_coverage: float = 0.6
+    """A live view covering less of the reference than this means "vine changed here"."""
+    max_rmse: float = 0.002
+    """A residual above this after alignment (m) means "vine changed here"."""
+    sim_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """camera sim: move the vine by this (m, vine frame) before rendering."""
+    seed: int = 0
+    """camera sim: seed of the D405 noise."""
+
+    def __post_init__(self) -> None:
+        if self.frames < 1:
+            raise InputError(f"frames must be >= 1, got {self.frames}")
+        check_finite(self, ("max_translation", "max_rotation", "max_rmse"), positive=True)
+        if not 0.0 < self.min_coverage <= 1.0:
+            raise InputError(f"min_coverage must lie in (0, 1], got {self.min_coverage}")
