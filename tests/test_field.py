@@ -263,3 +263,29 @@ def test_check_reference_passes_an_unmoved_vine_and_flags_a_moved_or_changed_one
         twin, twin.poses[0].id, depths, reference_cloud(twin, twin.poses[0].id), cfg
     )
     assert changed.verdict == "vine changed here" and "covers" in changed.reason, changed
+
+
+def test_fidelity_sweeps_the_twin_and_reports_errors_against_its_quality(
+    sample_twin_dir: Path, tmp_path: Path
+) -> None:
+    """`vinetwin fidelity` at its smallest: one rebuilt twin (12 frames), one start, one variant:
+    the twin is scored, the camera and cut-point errors are reported beside the true mesh's,
+    and the plot is written."""
+    from vinetwin.sim.config import FidelityConfig
+    from vinetwin.sim.fidelity import run_fidelity, sweep_points
+    from vinetwin.twin.model import Twin
+
+    assert sweep_points(FidelityConfig()) == [
+        (20, 0.001, 0.0015), (60, 0.001, 0.0015), (120, 0.001, 0.0015),
+        (60, 0.0, 0.0015), (60, 0.003, 0.0015),
+    ]  # fmt: skip
+    cfg = FidelityConfig(frames=(12,), pose_noise=(0.001,), preset="quick",
+                         variants=("point_to_plane",), ablation=False, duration=6.0, workers=1)  # fmt: skip
+    res = run_fidelity(Twin.load(sample_twin_dir), cfg, tmp_path)
+    (point,) = res["points"]
+    assert point["chamfer_mm"] > 0.5 and 0 < point["fscore_2mm"] < 1
+    stats = point["variants"]["point_to_plane"]
+    assert 0 < stats["final_cut_mm"] < 20 and 0 < stats["final_translation_mm"] < 20
+    assert "point_to_plane" in res["ideal"]
+    assert (tmp_path / "fidelity.png").stat().st_size > 10_000
+    assert "| 12 | 1.0 / 2.0 |" in (tmp_path / "fidelity.md").read_text()

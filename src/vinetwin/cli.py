@@ -17,7 +17,7 @@ from vinetwin.errors import VinetwinError
 from vinetwin.progress import with_progress
 from vinetwin.reconstruct.pipeline import ReconstructConfig
 from vinetwin.servo.config import CheckConfig, RunnerConfig
-from vinetwin.sim.config import CampaignConfig, ValidateConfig
+from vinetwin.sim.config import CampaignConfig, FidelityConfig, ValidateConfig
 
 log = logging.getLogger("vinetwin")
 
@@ -99,8 +99,7 @@ class Cluster:
     ray: bool = False
     """Run the jobs on a local Ray started on this machine (pip install 'vinetwin[ray]')."""
     ray_address: str = ""
-    """Run the jobs on this Ray cluster (e.g. HOST:6379 or auto); the twin folders must be at the
-    same path on every node."""
+    """Run the jobs on this Ray cluster (HOST:6379 or auto; same twin paths on every node)."""
 
     def executor(self, workers: int):  # type: ignore[no-untyped-def]
         from vinetwin.executor import ExecutorConfig
@@ -120,8 +119,7 @@ class Export:
     backend: BackendChoice = "open3d"
     """Depth renderer: open3d (ray casting, no OpenGL), pyrender or mujoco (EGL)."""
     workers: int = 0
-    """Worker processes; 0 chooses (1 for open3d, whose ray caster already uses every core; one
-    per core for pyrender and mujoco). With --ray: the local Ray's CPUs (0: all)."""
+    """Processes; 0 chooses (1 for open3d, one per core for pyrender, mujoco; Ray: its CPUs)."""
     cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
     seed: int = 0
     """Base seed of the D405 noise; each pose derives its own."""
@@ -133,14 +131,10 @@ class Export:
     def run(self) -> None:
         from vinetwin.render.export import check_export_ok, export_twins, print_report
 
-        report, where = with_progress(
-            "exporting references",
-            lambda progress: export_twins(
-                self.twin, self.poses, backend=self.backend, workers=self.workers,
-                seed=self.seed, clean=self.clean, force=self.force,
-                executor=self.cluster.executor(self.workers), progress=progress,
-            ),
-        )  # fmt: skip
+        report, where = with_progress("exporting references", lambda progress: export_twins(
+            self.twin, self.poses, backend=self.backend, workers=self.workers, seed=self.seed,
+            clean=self.clean, force=self.force, executor=self.cluster.executor(self.workers),
+            progress=progress))  # fmt: skip
         print_report(report, where)
         check_export_ok(report)
 
@@ -182,8 +176,7 @@ class Campaign:
     """Also write the figures (campaign.json) here."""
     cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
     force: bool = False
-    """Run every run again, even those already in OUT/runs with the same inputs (an earlier
-    campaign that was interrupted or had runs fail keeps its finished runs there)."""
+    """Run every run again, even those already in OUT/runs with the same inputs."""
 
     def run(self) -> None:
         from vinetwin.sim.campaign import run_campaign
@@ -231,8 +224,7 @@ class ServoCmd:
     log: Path | None = None
     """Cycle log (JSON Lines; default TWIN/servo/POSE-DATE.jsonl)."""
     record: Path | None = None
-    """Also write the frames, with stamps and robot poses, as a capture folder (replayable with
-    --camera folder:DIR --robot none)."""
+    """Also write the frames, stamps and robot poses as a capture folder (replayable)."""
     mcap: Path | None = None
     """Also write the run as MCAP for Foxglove or RViz (a ROS 2 bag folder; docs/ros.md)."""
 
@@ -241,18 +233,36 @@ class ServoCmd:
         from vinetwin.sim.rig import simulated_session
         from vinetwin.twin.model import Twin
 
-        summary, path = run_pose(
-            Twin.load(self.twin), self.config, log_path=self.log, record=self.record,
-            simulator=simulated_session, mcap=self.mcap,
-        )  # fmt: skip
+        summary, path = run_pose(Twin.load(self.twin), self.config, log_path=self.log,
+                                 record=self.record, simulator=simulated_session, mcap=self.mcap)  # fmt: skip
         print(f"{summary.describe()}\nlog: {path}")
 
 
 @dataclass(frozen=True, kw_only=True)
+class Fidelity:
+    """How good must a twin be? Servo on the true vine with references from twins rebuilt at
+    several qualities: final errors against Chamfer and F-score, ablation (docs/field.md)."""
+
+    twin: Annotated[Path, Positional]
+    """The true twin (its mesh is the truth)."""
+    config: Annotated[FidelityConfig, Nested] = field(default_factory=FidelityConfig)
+    out: Path | None = None
+    """Report folder (default: TWIN/fidelity)."""
+
+    def run(self) -> None:
+        from vinetwin.sim.fidelity import run_fidelity
+        from vinetwin.twin.model import Twin
+
+        out = self.out or self.twin / "fidelity"
+        with_progress("simulating", lambda progress: run_fidelity(
+            Twin.load(self.twin), self.config, out, progress))  # fmt: skip
+        log.info("report: %s", out / "fidelity.md")
+
+
+@dataclass(frozen=True, kw_only=True)
 class CheckReference:
-    """Align live frames taken at a pruning pose (the camera sent there) with its reference: twin
-    still valid, vine moved, or vine changed here; check.json and check.png in --out. Exit
-    status 1 when the twin is not valid there (docs/servo.md)."""
+    """Live frames at a pruning pose against its reference: twin still valid, vine moved or vine
+    changed here (check.json, check.png); exit status 1 unless valid (docs/field.md)."""
 
     twin: Annotated[Path, Positional]
     """Twin folder."""
@@ -271,8 +281,7 @@ class CheckReference:
 
 @dataclass(frozen=True, kw_only=True)
 class ServoPlot:
-    """Plot servo logs (vinetwin servo --log) with the campaign report's figures: error against
-    time and the camera's path."""
+    """Plot servo logs (vinetwin servo --log) as the campaign report draws its runs."""
 
     logs: Annotated[tuple[Path, ...], Positional]
     """One or more .jsonl logs."""
@@ -287,8 +296,7 @@ class ServoPlot:
 
 @dataclass(frozen=True, kw_only=True)
 class CaptureSynthetic:
-    """Render a synthetic RGB-D capture of a twin's mesh (D405 depth with its noise, textured
-    colour, ground-truth poses) into a capture folder."""
+    """Render a synthetic RGB-D capture of a twin (D405 depth, textured colour, true poses)."""
 
     twin: Annotated[Path, Positional]
     """Twin folder whose mesh is captured."""
@@ -337,8 +345,7 @@ class ImportRecording:
 
 @dataclass(frozen=True, kw_only=True)
 class Reconstruct:
-    """Fuse a capture folder into a vine mesh (TSDF) and write it into a twin; optionally
-    evaluate it against a ground-truth mesh (Chamfer distance, F-score at 2 and 5 mm)."""
+    """Fuse a capture folder into a vine mesh (TSDF) in a twin; optionally score it (Chamfer, F)."""
 
     capture: Annotated[Path, Positional]
     """Capture folder (capture.json, color/, depth/)."""
@@ -362,8 +369,7 @@ class Reconstruct:
 
 @dataclass(frozen=True, kw_only=True)
 class Web:
-    """Serve the authoring app: click canes, adjust pruning poses, preview what the D405 sees,
-    save, export."""
+    """Serve the authoring app: click canes, adjust pruning poses, preview, save, export."""
 
     twin: Annotated[Path | None, Positional] = None
     """Twin folder (default: a copy of the bundled sample in out/web)."""
@@ -413,6 +419,7 @@ COMMANDS: dict[str, type] = {
     "servo": ServoCmd,
     "servo-plot": ServoPlot,
     "check-reference": CheckReference,
+    "fidelity": Fidelity,
     "reconstruct": Reconstruct,
 }
 

@@ -138,7 +138,7 @@ def plot_check(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from scipy.spatial import cKDTree
+    from scipy.spatial import KDTree
 
     cam = twin.camera
 
@@ -154,7 +154,7 @@ def plot_check(
         u, v = uv(cloud.points)  # where the live view was before the alignment
         ax.scatter(u, v, s=2, c="tab:red", alpha=0.35, label="live, as taken")
         live = transform_points(T, cloud.points)
-        d = cKDTree(reference.points).query(live)[0] * 1000
+        d = KDTree(reference.points).query(live)[0] * 1000
         u, v = uv(live)
         sc = ax.scatter(u, v, s=3, c=np.minimum(d, 5.0), cmap="viridis", vmin=0, vmax=5,
                         label="live, aligned")  # fmt: skip

@@ -396,3 +396,42 @@ class ValidateConfig(JsonFields):
         if self.starts < 1:
             raise InputError(f"starts must be >= 1, got {self.starts}")
         check_finite(self, ("radius_translation", "radius_rotation", "duration"))
+
+
+@dataclass(frozen=True, kw_only=True)
+class FidelityConfig(JsonFields):
+    """`vinetwin fidelity`: how good must a twin be? The whole chain against a truth, over a sweep
+    of the twin's quality."""
+
+    frames: tuple[int, ...] = (20, 60, 120)
+    """Capture sizes swept (frames of the synthetic capture), at the middle pose noise."""
+    pose_noise: tuple[float, ...] = (0.0, 0.001, 0.003)
+    """Capture pose errors swept (m per axis; the rotation error is 2 rad per m of it, e.g.
+    1 mm with 2 mrad), at the middle capture size."""
+    voxels: tuple[float, ...] = (0.0015,)
+    """Fusion voxels swept (m), at the middle capture size and pose noise."""
+    profile: str = "field"
+    """The servo runs' error profile (the twin source is always on; its settings are the
+    sweep's): field (every source), ideal (the twin alone), or a JSON file."""
+    preset: Literal["table1", "table2", "quick"] = "table1"
+    """Starts of each sweep point."""
+    variants: tuple[Variant, ...] = ALL_VARIANTS
+    """ICP variants."""
+    ablation: bool = True
+    """At the middle point, also each error source alone (the ablation table)."""
+    duration: float = 30.0
+    """Longest simulated time per run (s)."""
+    seed: int = 0
+    """Seed of the captures, the starts and the noise."""
+    workers: int = 0
+    """Processes; 0: one per core."""
+
+    def __post_init__(self) -> None:
+        load_profile(self.profile)
+        _check_variants(self.variants)
+        if not self.frames or not self.pose_noise or not self.voxels:
+            raise InputError("give at least one value for each of frames, pose_noise and voxels")
+        if min(self.frames) < 10:
+            raise InputError("a capture needs at least 10 frames")
+        if min(self.pose_noise) < 0 or min(self.voxels) <= 0:
+            raise InputError("pose_noise must be >= 0 and voxels > 0")

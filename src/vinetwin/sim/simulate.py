@@ -72,6 +72,9 @@ class SimRun:
     """The cut point's pixel (u, v) in each frame (NaN behind the camera)."""
     cut_outside: int = 0
     """Frames whose image did not hold the cut point."""
+    cut_error: list[float] = field(default_factory=list)
+    """Per frame: how far the cut point is, in the camera (the tool) frame, from where it is at
+    the goal (m): what the pruning tool would miss it by."""
     reacquisitions: int = 0
     """Frames trusted by the wide search after a streak of refusals."""
     lost: str = ""
@@ -90,6 +93,8 @@ class SimRun:
         last = t >= (t[-1] - 0.5) if len(t) else np.zeros(0, bool)
         final_t = float(np.median(et[last])) if last.any() else math.nan
         final_r = float(np.median(er[last])) if last.any() else math.nan
+        ec = np.asarray(self.cut_error)
+        final_cut = float(np.median(ec[last])) if last.any() and len(ec) == len(t) else math.nan
         tol_t, tol_r = cfg.tolerances()
         inside = (et <= tol_t) & (er <= tol_r)
         conv_time = None
@@ -107,6 +112,7 @@ class SimRun:
             "start_rotation": start_r,
             "final_translation": final_t,
             "final_rotation": final_r,
+            "final_cut_error": final_cut,
             "converged": bool(final_t <= tol_t and final_r <= tol_r),
             "convergence_time": conv_time,
             "frames": len(t),
@@ -201,6 +207,7 @@ def simulate(
             record, camera, camera.depth_unit, extra={"provenance": {"simulation": cfg.to_dict()}}
         )
     at_goal_since: list[float | None] = [None]
+    cut_at_goal = transform_points(invert(np.asarray(goal, float)), cut[None])[0]
 
     def on_cycle(c: Cycle) -> dict[str, Any]:
         r, t = c.result, source.now()  # the frame's stamp, unless a fault made it late
@@ -210,6 +217,7 @@ def simulate(
         run.error_t.append(et)
         run.error_r.append(er)
         p = transform_points(invert(source.T_rel), cut[None])[0]  # the cut in the camera
+        run.cut_error.append(float(np.linalg.norm(p - cut_at_goal)))
         run.cut_uv.append(
             [float(camera.fx * p[0] / p[2] + camera.cx), float(camera.fy * p[1] / p[2] + camera.cy)]
             if p[2] > 1e-6
