@@ -1,6 +1,6 @@
 """Benchmark: the four ICP variants side by side with Open3D and small_gicp, and the servo cycle.
 
-Clouds: the bundled sample vine's pruning poses rendered at 848x480 with Open3D ray casting
+Clouds: a twin's pruning poses (`--twin`, default the bundled sample) rendered at 848x480 with Open3D ray casting
 through the D405 sensor model and the perception chain (reference at the pose, current at a
 known offset from it, each with its own noise), at 4 mm and 2 mm voxels. Starts: warm
 (2 cm / 3 deg from the truth) and identity (5 cm / 10 deg).
@@ -17,10 +17,10 @@ level for all.
 Printed per method: median time (ms), median iterations, translation and rotation error against
 the true transform (median and 90th percentile), the fraction within 1 mm / 0.1 deg, and the
 time ratio to the fastest peer implementing the same objective (LM and symmetric also to our
-point-to-plane). Then the full servo cycle at 4 mm: perception chain + ICP + PBVS control
-(`Servo.step_depth`), in ms and Hz.
+point-to-plane). Then the full servo cycle at each voxel: perception chain + ICP + PBVS control
+(`Servo.step_depth`), in ms and Hz (the JSON's `cycles`).
 
-    .venv/bin/python benchmarks/icp.py [--trials 4] [--quick] [--json out.json]
+    .venv/bin/python benchmarks/icp.py [--twin TWIN] [--trials 4] [--quick] [--json out.json]
 """
 
 from __future__ import annotations
@@ -268,8 +268,9 @@ def add_ratios(rows: list[dict[str, Any]]) -> None:
             row["ratio_to_our_point_to_plane"] = row["ms"] / by["vinetwin point_to_plane"]["ms"]
 
 
-def cycle(twin: Twin, cases: list[Case], repeats: int) -> list[dict[str, Any]]:
-    """Perception + ICP + control per frame (`Servo.step_depth`), warm start."""
+def cycle(twin: Twin, cases: list[Case], repeats: int, voxel: float) -> list[dict[str, Any]]:
+    """Perception + ICP + control per frame (`Servo.step_depth`) at `voxel`, warm start."""
+    per = dataclasses.replace(twin.perception, voxel_size=voxel)
     out = []
     for v in VARIANTS:
         times: list[float] = []
@@ -279,7 +280,7 @@ def cycle(twin: Twin, cases: list[Case], repeats: int) -> list[dict[str, Any]]:
                 case.reference,
                 icp=config_for("warm", v),
                 camera=twin.camera,
-                perception=twin.perception,
+                perception=per,
                 limits=Limits(max_linear_acceleration=0, max_angular_acceleration=0),
             )
             for k in range(repeats + 1):
@@ -296,6 +297,7 @@ def cycle(twin: Twin, cases: list[Case], repeats: int) -> list[dict[str, Any]]:
         ms = 1000 * statistics.median(times)
         out.append(
             {
+                "voxel": voxel,
                 "variant": v,
                 "cycle_ms": ms,
                 "hz": 1000 / ms,
@@ -335,10 +337,11 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="small_gicp threads")
     ap.add_argument("--quick", action="store_true", help="1 trial, 1 repeat, 4 mm only")
     ap.add_argument("--json", type=Path, help="write the figures here")
+    ap.add_argument("--twin", type=Path, default=SAMPLE, help="twin folder (default: the sample)")
     args = ap.parse_args()
     if args.quick:
         args.trials, args.repeats = 1, 1
-    twin = Twin.load(SAMPLE)
+    twin = Twin.load(args.twin)
     rng = np.random.default_rng(7)
     voxels = (0.004,) if args.quick else (0.004, 0.002)
     print(
@@ -347,10 +350,10 @@ def main() -> None:
         f"its OpenMP default, vinetwin {numba.get_num_threads()} numba threads"
     )
     results: dict[str, Any] = {
-        "sample": twin.name,
+        "twin": twin.name,
         "trials": args.trials,
         "tables": [],
-        "cycle": [],
+        "cycles": [],
     }
     for voxel in voxels:
         for start in STARTS:
@@ -373,14 +376,15 @@ def main() -> None:
             results["tables"].append(
                 {"voxel": voxel, "start": start, "cases": len(cases), "points": npts, "rows": rows}
             )
-            if voxel == 0.004 and start == "warm":
-                results["cycle"] = cycle(twin, cases, args.repeats)
-    print("\nservo cycle at 4 mm (perception + ICP + control, Servo.step_depth, warm start)")
-    print(f"{'variant':16} {'cycle ms':>9} {'Hz':>6} {'perception':>11} {'icp':>6} {'control':>8}")
-    for c in results["cycle"]:
+            if start == "warm":
+                results["cycles"] += cycle(twin, cases, args.repeats, voxel)
+    print("\nservo cycle (perception + ICP + control, Servo.step_depth, warm start)")
+    print(f"{'voxel':>5} {'variant':16} {'cycle ms':>9} {'Hz':>6} {'perception':>11} {'icp':>6} "
+          f"{'control':>8}")  # fmt: skip
+    for c in results["cycles"]:
         print(
-            f"{c['variant']:16} {c['cycle_ms']:9.2f} {c['hz']:6.0f} {c['perception_ms']:11.2f}"
-            f" {c['icp_ms']:6.2f} {c['control_ms']:8.3f}"
+            f"{1000 * c['voxel']:4.0f}mm {c['variant']:16} {c['cycle_ms']:9.2f} {c['hz']:6.0f} "
+            f"{c['perception_ms']:11.2f} {c['icp_ms']:6.2f} {c['control_ms']:8.3f}"
         )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

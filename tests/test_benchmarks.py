@@ -28,7 +28,8 @@ def test_icp_benchmark_quick(tmp_path: Path) -> None:
         for v in ("point_to_point", "point_to_plane", "symmetric"):
             assert methods[f"vinetwin {v}"]["ratio_to_fastest_peer"] > 0
         assert methods["vinetwin lm"]["ratio_to_our_point_to_plane"] > 0
-    assert {c["variant"] for c in data["cycle"]} == {
+    assert {c["voxel"] for c in data["cycles"]} == {0.004}
+    assert {c["variant"] for c in data["cycles"]} == {
         "point_to_point",
         "lm",
         "point_to_plane",

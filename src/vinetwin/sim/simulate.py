@@ -25,6 +25,8 @@ Metrics (`SimRun.summary`):
   or calibration moves the camera's resting point by design;
 - convergence time: the first time after which the true error stays within those tolerances to
   the end of the run (None when it never does);
+- final cut error: the median, over the last 0.5 s, of how far the cut point is in the camera
+  (tool) frame from where it is at the goal;
 - loop rate: frames processed per simulated second, and the median compute time per frame.
 """
 
