@@ -289,3 +289,37 @@ def test_fidelity_sweeps_the_twin_and_reports_errors_against_its_quality(
     assert "point_to_plane" in res["ideal"]
     assert (tmp_path / "fidelity.png").stat().st_size > 10_000
     assert "| 12 | 1.0 / 2.0 |" in (tmp_path / "fidelity.md").read_text()
+
+
+def test_the_depth_source_scales_and_thins_the_d405_depth() -> None:
+    """The field D405 model: every depth scaled by (1 + bias), the noise's spread raised by
+    the outdoor factor, about `depth_dropout` of the pixels lost."""
+    from vinetwin.render.sensor import SensorConfig, apply_d405_model
+
+    flat = np.full((CAM.height, CAM.width), 0.2, np.float32)
+    plain = SensorConfig(edge_width=0, quantize=False)
+    d = draw_field(FIELD, 1, CAM)
+    assert d.sensor is not None
+    field = replace(d.sensor, edge_width=0, quantize=False)
+    ideal = apply_d405_model(flat, CAM, np.random.default_rng(0), plain)
+    out = apply_d405_model(flat, CAM, np.random.default_rng(0), field)
+    valid = out > 0
+    assert np.mean(valid) == pytest.approx(1 - FIELD.depth_dropout, abs=0.005)
+    assert np.mean(out[valid]) == pytest.approx(0.2 * (1 + field.bias), abs=2e-6)
+    ratio = np.std(out[valid]) / np.std(ideal[ideal > 0]) / (1 + field.bias)
+    assert ratio == pytest.approx(FIELD.depth_noise_factor, rel=0.02)
+
+
+def test_the_wind_moves_the_vine_as_configured() -> None:
+    """The vine's displacement over 10 s: the sum of the two sinusoids, its extreme within the
+    sum of their amplitudes and its spectrum peaking at their frequencies."""
+    d = draw_field(replace(FIELD, sources=("wind",)), 2, CAM)
+    t = np.arange(0, 10, 1 / 200)
+    p = np.array([d.vine_wind(x)[:3, 3] for x in t])
+    assert np.linalg.norm(p, axis=1).max() <= FIELD.sway_amplitude + FIELD.base_amplitude + 1e-12
+    for w in d.wind:
+        along = p @ np.asarray(w.axis)
+        spectrum = np.abs(np.fft.rfft(along))
+        freqs = np.fft.rfftfreq(len(t), 1 / 200)
+        near = np.abs(freqs - w.frequency) < 0.11
+        assert spectrum[near].max() > 0.3 * spectrum.max()
