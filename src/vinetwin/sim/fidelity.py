@@ -167,10 +167,10 @@ def write_fidelity_report(result: dict[str, Any], out_dir: Path) -> None:
         f = [r["fscore_2mm"] for r in pts]
         cam = [r["variants"].get(v, {}).get("final_translation_mm", math.nan) for r in pts]
         cut = [r["variants"].get(v, {}).get("final_cut_mm", math.nan) for r in pts]
-        axes[0].plot(x, cam, "o-", color=COLORS.get(v), label=f"{v}: camera")
-        axes[0].plot(x, cut, "s--", color=COLORS.get(v), alpha=0.6, label=f"{v}: cut point")
+        axes[0].plot(x, cam, "o", color=COLORS.get(v), label=f"{v}: camera")
+        axes[0].plot(x, cut, "s", mfc="none", color=COLORS.get(v), label=f"{v}: cut point")
         order = np.argsort(f)
-        axes[1].plot(np.asarray(f)[order], np.asarray(cam)[order], "o-", color=COLORS.get(v))
+        axes[1].plot(np.asarray(f)[order], np.asarray(cam)[order], "o", color=COLORS.get(v))
         ideal = result.get("ideal", {}).get(v)
         if ideal:
             axes[0].plot([0.0], [ideal["final_translation_mm"]], "*", ms=11, color=COLORS.get(v))
