@@ -190,3 +190,24 @@ def test_structure_from_motion_that_registers_nothing_is_named(
         iio.imwrite(png, np.full((480, 848, 3), 128, np.uint8))  # no features to match
     with pytest.raises(CaptureError, match="registered no frame"):
         colmap_poses(read_capture(blank))
+
+
+def test_a_frame_seeing_only_beyond_the_fusion_range_is_skipped(
+    vine_views: VineViews, tmp_path: Path
+) -> None:
+    """A frame whose depth lies entirely beyond `depth_max` (a camera looking past the vine, as
+    a sweep over a large real vine gives) is skipped and named, not an Open3D abort that loses
+    the whole reconstruction (found fusing a capture of hydroshoot's gdc_can1_grapevine)."""
+    from vinetwin.capture.folder import write_capture
+
+    cam = vine_views.twin.camera
+    pose = vine_views.twin.poses[0].T_vine_camera
+    near = vine_views.depth(pose, 3)
+    far = np.where(near > 0, 0.8, 0.0)  # everything at 0.8 m, beyond the default 0.5 m
+    grey = np.full((cam.height, cam.width, 3), 128, np.uint8)
+    frames = [(grey, near, pose), (grey, far, pose)]
+    frames += [(grey, vine_views.depth(pose, 4 + k), pose) for k in range(4)]
+    cap = read_capture(write_capture(tmp_path / "cap", cam, frames))
+    res = fuse(cap, kinematic_poses(cap), FusionConfig(voxel=0.002, truncation=0.008))
+    assert len(res.frames_used) == 5 and len(res.faces) > 100
+    assert list(res.frames_skipped.values()) == ["no depth within range"]

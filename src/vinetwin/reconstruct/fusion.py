@@ -87,6 +87,7 @@ def fuse(
             continue
         d16 = f.depth_counts().copy()
         d16[d16 < int(cfg.depth_min * scale)] = 0
+        d16[d16 > int(cfg.depth_max * scale)] = 0  # Open3D aborts on a frame it cannot use
         if not d16.any():
             skipped[f.id] = "no depth within range"
             continue
