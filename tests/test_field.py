@@ -323,3 +323,19 @@ def test_the_wind_moves_the_vine_as_configured() -> None:
         freqs = np.fft.rfftfreq(len(t), 1 / 200)
         near = np.abs(freqs - w.frequency) < 0.11
         assert spectrum[near].max() > 0.3 * spectrum.max()
+
+
+def test_capture_around_the_poses_looks_at_their_cut_points(sample_twin_dir: Path) -> None:
+    """The 'poses' capture (for vines too large to sweep whole): every viewpoint has its pose's
+    cut point on its optical axis at the capture distance, within 0.6 rad of the pose's view."""
+    from vinetwin.reconstruct.synthetic import around_poses
+    from vinetwin.twin.model import Twin
+
+    twin = Twin.load(sample_twin_dir)
+    views = around_poses(twin, 3 * len(twin.poses), distance=0.3)
+    for k, T in enumerate(views):
+        pose = twin.poses[k % len(twin.poses)]
+        p = fr.transform_points(fr.invert(T), twin.cut_point(pose.cut_point).point[None])[0]
+        np.testing.assert_allclose(p, [0, 0, 0.3], atol=1e-9)
+        axis = np.asarray(pose.T_vine_camera)[:3, 2]
+        assert np.arccos(np.clip(axis @ T[:3, 2], -1, 1)) <= 0.75

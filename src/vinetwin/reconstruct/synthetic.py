@@ -62,6 +62,26 @@ def sweep_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
     return poses
 
 
+def around_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
+    """Viewpoints around the twin's pruning poses, shared among them: each looks at its pose's
+    cut point from `distance`, from directions within 0.6 rad of the pose's own view (what a
+    robot capturing the vine where it will prune would record; for large vines, where a sweep of
+    the whole plant at the D405's range cannot fit)."""
+    poses = []
+    if not twin.poses:
+        raise ValueError("the 'poses' trajectory needs a twin with pruning poses")
+    for k in range(frames):
+        pose = twin.poses[k % len(twin.poses)]
+        cut = twin.cut_point(pose.cut_point).point
+        T = np.asarray(pose.T_vine_camera)
+        j = k // len(twin.poses)
+        yaw, pitch = 0.6 * np.sin(2.4 * j + 0.3), 0.4 * np.cos(1.7 * j)
+        view = T[:3, :3] @ np.array([np.sin(yaw), np.sin(pitch), np.cos(yaw) * np.cos(pitch)])
+        up = -T[:3, 1]  # keep the pose's image "up"
+        poses.append(look_at(cut - distance * view / np.linalg.norm(view), cut, up))
+    return poses
+
+
 def path_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
     """A video-like path: the camera sweeps along the vine and back at two heights, a small step
     between frames (what a hand-held or arm-held camera records at video rate)."""
@@ -94,16 +114,18 @@ def synthetic_capture(
 ) -> Path:
     """Renders the sweep into a capture folder; returns its path. `pose_noise` (m, rad) is the
     standard deviation of the error added to the recorded poses. `trajectory`: "grid" (viewpoints
-    spread over the vine, for fusion and structure-from-motion) or "path" (a continuous sweep with
-    small steps, as a video, for frame-to-frame odometry)."""
+    spread over the vine, for fusion and structure-from-motion), "path" (a continuous sweep with
+    small steps, as a video, for frame-to-frame odometry) or "poses" (around the twin's pruning
+    poses: for vines too large to sweep whole at the D405's range)."""
     mesh = twin.load_mesh()
     cam = twin.camera
     backend = get_backend("open3d", mesh.vertices, mesh.faces, cam)
     rng = np.random.default_rng(seed)
     rows = []
-    if trajectory not in ("grid", "path"):
-        raise ValueError(f"unknown trajectory '{trajectory}'; choose grid or path")
-    poses = (sweep_poses if trajectory == "grid" else path_poses)(twin, frames, distance)
+    makers = {"grid": sweep_poses, "path": path_poses, "poses": around_poses}
+    if trajectory not in makers:
+        raise ValueError(f"unknown trajectory '{trajectory}'; choose grid, path or poses")
+    poses = makers[trajectory](twin, frames, distance)
     for i, T in enumerate(poses):
         clean = backend.render(T)
         depth = apply_d405_model(clean, cam, rng, SensorConfig())

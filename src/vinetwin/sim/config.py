@@ -117,6 +117,9 @@ class FieldProfile(JsonFields):
     """twin: and its rotation (rad, per axis)."""
     twin_voxel: float = 0.0015
     """twin: the fusion's TSDF voxel (m)."""
+    twin_trajectory: Literal["grid", "poses"] = "grid"
+    """twin: the capture's viewpoints: grid (a sweep over the whole vine from one side) or poses
+    (around the twin's pruning poses; for vines too large to sweep whole at 0.3 m)."""
     registration_translation: float = 0.02
     """registration: where the robot believes the vine is, off by this much (m; the platform's
     stop after the arrival; replaces the ideal run's `registration_error_translation`)."""
@@ -165,7 +168,12 @@ class FieldProfile(JsonFields):
                 raise InputError(
                     f"unknown field error source '{src}'; choose from: {', '.join(FIELD_SOURCES)}"
                 )
-        check_finite(self, tuple(f for f in self.__dataclass_fields__ if f != "sources"))
+        check_finite(
+            self,
+            tuple(f for f in self.__dataclass_fields__ if f not in ("sources", "twin_trajectory")),
+        )
+        if self.twin_trajectory not in ("grid", "poses"):
+            raise InputError(f"twin_trajectory must be grid or poses, got {self.twin_trajectory!r}")
         if self.twin_frames < 10:
             raise InputError(f"twin_frames must be >= 10, got {self.twin_frames}")
         if not (0.0 <= self.frame_drop < 1.0 and 0.0 <= self.depth_dropout < 1.0):
@@ -410,6 +418,9 @@ class FidelityConfig(JsonFields):
     1 mm with 2 mrad), at the middle capture size."""
     voxels: tuple[float, ...] = (0.0015,)
     """Fusion voxels swept (m), at the middle capture size and pose noise."""
+    trajectory: Literal["grid", "poses"] = "grid"
+    """The captures' viewpoints: grid (the whole vine from one side) or poses (around the
+    pruning poses; for large vines)."""
     profile: str = "field"
     """The servo runs' error profile (the twin source is always on; its settings are the
     sweep's): field (every source), ideal (the twin alone), or a JSON file."""

@@ -92,6 +92,7 @@ def run_fidelity(
         prof = replace(
             base, sources=sources, twin_frames=frames, twin_pose_noise_translation=noise,
             twin_pose_noise_rotation=2.0 * noise, twin_voxel=voxel,
+            twin_trajectory=cfg.trajectory,
         )  # fmt: skip
         pfile = where / "profile.json"
         atomic_write_text(pfile, json.dumps(prof.to_dict(), indent=1))

@@ -145,6 +145,7 @@ def reconstructed_twin(
         "noise": [profile.twin_pose_noise_translation, profile.twin_pose_noise_rotation],
         "voxel": profile.twin_voxel,
         "seed": seed,
+        **({"trajectory": profile.twin_trajectory} if profile.twin_trajectory != "grid" else {}),
     }
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
     out = Path(cache) / f"twin_{digest}"
@@ -155,6 +156,7 @@ def reconstructed_twin(
     capture = synthetic_capture(
         twin, out / "capture", frames=profile.twin_frames, seed=seed,
         pose_noise=(profile.twin_pose_noise_translation, profile.twin_pose_noise_rotation),
+        trajectory=profile.twin_trajectory,
     )  # fmt: skip
     rep = reconstruct(
         capture, mesh, ReconstructConfig(voxel=profile.twin_voxel), overwrite=True,
