@@ -308,8 +308,8 @@ class CaptureSynthetic:
     """Camera distance to the vine (m)."""
     pose_noise: tuple[float, float] = (0.0, 0.0)
     """Standard deviation of the error added to the recorded poses (m, rad)."""
-    trajectory: Literal["grid", "path"] = "grid"
-    """grid: viewpoints spread over the vine; path: a continuous sweep with small steps (video)."""
+    trajectory: Literal["grid", "path", "poses"] = "grid"
+    """grid: viewpoints over the vine; path: a video-like sweep; poses: around the pruning poses."""
     seed: int = 0
 
     def run(self) -> None:
