@@ -42,13 +42,16 @@ class Sample:
     """How many cut-point candidates become cut points with a default pruning pose."""
     overwrite: bool = False
     """Replace a twin already in OUT."""
+    dense: bool = False
+    """Grow a dense vine (spurs twice as close, 2-4 canes each: the paper's Table 2 vines)."""
 
     def run(self) -> None:
         from vinetwin.twin.generator import sample_twin
         from vinetwin.twin.summary import print_summary
 
         print_summary(sample_twin(self.out, self.seed, cordons=self.cordons, edge=self.edge,
-                                  cut_points=self.cut_points, overwrite=self.overwrite))  # fmt: skip
+                                  cut_points=self.cut_points, overwrite=self.overwrite,
+                                  dense=self.dense))  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -193,8 +196,7 @@ class Campaign:
 
 @dataclass(frozen=True, kw_only=True)
 class Validate:
-    """Check every pruning pose can be reached: closed-loop runs from stratified starts per pose
-    and ICP variant; success rate and convergence basin into TWIN/validation and twin.json."""
+    """Closed-loop runs per pruning pose and variant: success rate and basin into TWIN/validation."""
 
     twin: Annotated[Path, Positional]
     """Twin folder, or a folder of twin folders (a vineyard)."""
@@ -325,8 +327,7 @@ class CaptureSynthetic:
 
 @dataclass(frozen=True, kw_only=True)
 class ImportRecording:
-    """A recording as a capture folder: a ROS 1 or ROS 2 bag (RealSense ROS driver topics, poses
-    from /tf; docs/ros.md) or a librealsense recording (.db3, .bag; no robot poses)."""
+    """A ROS 1/2 bag (poses from /tf; docs/ros.md) or librealsense recording as a capture folder."""
 
     recording: Annotated[Path, Positional]
     """Recording: a file, or a ROS 2 bag folder."""
@@ -386,8 +387,7 @@ class Web:
 
 @dataclass(frozen=True, kw_only=True)
 class Demo:
-    """The main job, headless: copy the bundled sample twin to OUT, export its reference clouds
-    and write a preview of the first pose."""
+    """The main job, headless: the bundled sample copied to OUT, its references and a preview."""
 
     out: Path = Path("out/demo")
     """Folder for the demo's outputs (the bundled sample itself is never modified)."""

@@ -208,6 +208,10 @@ def generate_vine(seed: int = 0, params: VineParams | None = None) -> Skeleton:
     return sk
 
 
+#: A dense vine (the paper's Table 2 vines): spurs twice as close, two to four canes each.
+DENSE = {"spur_spacing": (0.06, 0.10), "canes_per_spur": (2, 4), "cane_length": (0.35, 0.90)}
+
+
 def sample_twin(
     out: str | Path,
     seed: int = 0,
@@ -216,13 +220,16 @@ def sample_twin(
     edge: float = 0.002,
     cut_points: int = 4,
     overwrite: bool = False,
+    dense: bool = False,
 ) -> Twin:
     """`vinetwin sample`: a procedural vine (`generate_vine`) written as a twin folder, its first
-    `cut_points` candidates made cut points with default pruning poses."""
+    `cut_points` candidates made cut points with default pruning poses; `dense`: the `DENSE`
+    growth (many canes crossing, as on the paper's Table 2 vines)."""
     from vinetwin.twin.model import twin_from_skeleton
 
-    sk = generate_vine(seed, VineParams(cordons=cordons))
-    source = {"generator": "vinetwin.twin.generator", "seed": seed, "cordons": cordons}
+    sk = generate_vine(seed, VineParams(cordons=cordons, **(DENSE if dense else {})))  # type: ignore[arg-type]
+    source = {"generator": "vinetwin.twin.generator", "seed": seed, "cordons": cordons,
+              **({"dense": True} if dense else {})}  # fmt: skip
     return twin_from_skeleton(
         out, sk, edge=edge, source=source, cut_points=cut_points, overwrite=overwrite
     )
