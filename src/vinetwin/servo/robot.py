@@ -28,7 +28,7 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -72,6 +72,17 @@ def guard_twist(twist: Any, previous: Array, dt: float, limits: CommandLimits) -
                 w[sl] = prev + delta * (cap / nd)
                 notes.append(f"{what} acceleration ramped")
     return w, "; ".join(notes)
+
+
+def pose_at(history: Sequence[tuple[float, Array]], stamp: float) -> Array | None:
+    """The pose at `stamp` interpolated (on the screw) between the two samples of `history`
+    ((time, pose), oldest first) around it; None when `stamp` lies outside them."""
+    if len(history) < 2 or not history[0][0] <= stamp <= history[-1][0]:
+        return None
+    k = next(i for i in range(1, len(history)) if history[i][0] >= stamp)
+    (t0, A), (t1, B) = history[k - 1], history[k]
+    a = 0.0 if t1 <= t0 else (stamp - t0) / (t1 - t0)
+    return A @ se3_exp(a * se3_log(invert(A) @ B))
 
 
 class Robot(ABC):
@@ -309,13 +320,8 @@ class FrankaRobot(Robot):
             self._history.append((self.clock(), T))
 
     def T_base_camera_at(self, stamp: float) -> Array:
-        hist = list(self._history)
-        if len(hist) < 2 or not hist[0][0] <= stamp <= hist[-1][0]:
-            return self.T_base_camera()
-        k = next(i for i in range(1, len(hist)) if hist[i][0] >= stamp)
-        (t0, A), (t1, B) = hist[k - 1], hist[k]
-        a = 0.0 if t1 <= t0 else (stamp - t0) / (t1 - t0)
-        return (A @ se3_exp(a * se3_log(invert(A) @ B))) @ self.T_flange_camera
+        T = pose_at(list(self._history), stamp)
+        return self.T_base_camera() if T is None else T @ self.T_flange_camera
 
     def _pose(self) -> Array:
         T = np.asarray(self.transport.T_base_flange(), float)

@@ -171,10 +171,9 @@ class Servo:
         if cloud.points.size:
             self.icp.align(cloud, np.eye(4))
             self._tight_icp().align(cloud, np.eye(4))
-            WideSearch(
-                self.reference, variant=self.icp_config.variant, camera=self.camera,
-                max_depth=self._max_depth,
-            ).align(cloud, np.eye(4), translation=0.01, rotation=0.02, accept=self._untrusted)  # fmt: skip
+            self._searcher().align(
+                cloud, np.eye(4), translation=0.01, rotation=0.02, accept=self._untrusted
+            )
         _WARMED.add(key)
 
     # ------------------------------------------------------------------ per frame
@@ -349,6 +348,15 @@ class Servo:
             f"{math.degrees(allow_r):.2f} deg)"
         )
 
+    def _searcher(self) -> WideSearch:
+        """The wide search over this servo's reference, built on first use."""
+        if self._search is None:
+            self._search = WideSearch(
+                self.reference, variant=self.icp_config.variant, camera=self.camera,
+                max_depth=self._max_depth,
+            )  # fmt: skip
+        return self._search
+
     def _tight_icp(self) -> ICP:
         """Tracking ICP without the wide levels: the final level only, from the prediction."""
         if self._tight is None:
@@ -389,12 +397,7 @@ class Servo:
         consecutive frames found the same one (compared as the reference camera in the robot
         base, or as they are without kinematics)."""
         s = self.safety
-        if self._search is None:
-            self._search = WideSearch(
-                self.reference, variant=self.icp_config.variant, camera=self.camera,
-                max_depth=self._max_depth,
-            )  # fmt: skip
-        res = self._search.align(
+        res = self._searcher().align(
             cloud, prediction, translation=s.search_translation, rotation=s.search_rotation,
             accept=self._untrusted,
         )  # fmt: skip

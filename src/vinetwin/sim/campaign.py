@@ -220,13 +220,12 @@ def run_campaign(
     is there; when runs fail, the error names them and nothing else is lost. `copy_json`: also
     copy campaign.json there."""
     jobs = plan(twin, cfg, out_dir / "field_twins")
+    profile = cfg.field_profile()
     field_twin: dict[str, Any] = {}
-    if cfg.field_profile().on("twin"):  # built by plan; its score, for the report
+    if profile.on("twin"):  # built by plan (cached there); its score, for the report
         from vinetwin.sim.field import reconstructed_twin
 
-        field_twin = reconstructed_twin(
-            twin, cfg.field_profile(), cfg.seed, out_dir / "field_twins"
-        )[1]
+        field_twin = reconstructed_twin(twin, profile, cfg.seed, out_dir / "field_twins")[1]
     runs_dir = out_dir / "runs"
     store = JobStore(runs_dir, CAMPAIGN_FORMAT, indent=None).open()
     remove_orphan_temp_files(out_dir)  # left by a campaign killed while writing its report
@@ -269,8 +268,8 @@ def run_campaign(
         "image_size": [twin.camera.width, twin.camera.height],
         "workers": workers,
         "resumed": len(jobs) - len(todo),
-        "field_sources": list(cfg.field_profile().sources),
-        "field_tolerances": list(SimConfig(profile=cfg.field_profile()).tolerances()),
+        "field_sources": list(profile.sources),
+        "field_tolerances": list(SimConfig(profile=profile).tolerances()),
         "field_twin": field_twin,
         "runs": results,
     }

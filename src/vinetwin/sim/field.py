@@ -20,9 +20,9 @@ frames on two cores); `reconstructed_twin` caches it by its inputs.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin.camera import CameraModel
+from vinetwin.files import atomic_write_json, file_sha256, json_sha256
 from vinetwin.frames import Array, make_pose, so3_exp
 from vinetwin.render.sensor import SensorConfig
 from vinetwin.sim.config import FIELD_SOURCES, FieldProfile
@@ -140,14 +141,14 @@ def reconstructed_twin(
     from vinetwin.reconstruct.synthetic import synthetic_capture
 
     key = {
-        "mesh_sha256": hashlib.sha256(Path(twin.mesh_path).read_bytes()).hexdigest(),
+        "mesh_sha256": file_sha256(Path(twin.mesh_path)),
         "frames": profile.twin_frames,
         "noise": [profile.twin_pose_noise_translation, profile.twin_pose_noise_rotation],
         "voxel": profile.twin_voxel,
         "seed": seed,
         **({"trajectory": profile.twin_trajectory} if profile.twin_trajectory != "grid" else {}),
     }
-    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    digest = json_sha256(key)[:16]
     out = Path(cache) / f"twin_{digest}"
     mesh, report = out / "rebuilt.twin", out / "reconstruction.json"
     if report.exists():
@@ -166,8 +167,6 @@ def reconstructed_twin(
 
     rebuilt = Twin.load(mesh)
     data = {"mesh": str(rebuilt.mesh_path), "evaluation": rep.get("evaluation", {}), "key": key}
-    report.write_text(json.dumps(data, indent=1))
-    import shutil
-
+    atomic_write_json(report, data)  # last: the cache entry exists only once it is whole
     shutil.rmtree(out / "capture", ignore_errors=True)  # the frames are not needed again
     return Path(data["mesh"]), data["evaluation"]

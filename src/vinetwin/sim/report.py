@@ -297,7 +297,7 @@ def field_note(data: dict[str, Any]) -> str:
         if twin.get("chamfer_mm") is not None
         else ""
     )
-    tol = data.get("field_tolerances") or [0.005, 0.05]
+    tol = _band(data)
     return (
         f"Error profile: {data['config'].get('profile', 'field')} (sources: {', '.join(srcs)})."
         + rebuilt
@@ -424,11 +424,14 @@ def _error_axes(ax_t: Any, ax_r: Any, run: dict[str, Any], label: str, color: st
 
 
 def _band(data: dict[str, Any]) -> tuple[float, float]:
-    """The band a grid run is judged by (m, rad): the field profile's when it had one."""
-    if data.get("field_sources"):
-        t, r = data.get("field_tolerances") or (0.005, 0.05)
+    """The band a grid run is judged by (m, rad): the field profile's when it had one (as
+    the campaign recorded it), else the servo's goal tolerance."""
+    from vinetwin.sim.config import SimConfig
+
+    if data.get("field_sources") and data.get("field_tolerances"):
+        t, r = data["field_tolerances"]
         return float(t), float(r)
-    return 0.002, 0.01
+    return SimConfig().tolerances()
 
 
 def _finish_error_axes(ax_t: Any, ax_r: Any, band: tuple[float, float] = (0.002, 0.01)) -> None:

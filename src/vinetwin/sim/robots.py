@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin.frames import Array, check_pose, invert, make_pose, se3_exp, se3_log, skew, so3_exp
-from vinetwin.servo.robot import CommandLimits, Robot
+from vinetwin.frames import Array, check_pose, invert, make_pose, se3_exp, skew, so3_exp
+from vinetwin.servo.robot import CommandLimits, Robot, pose_at
 
 
 class SimulatedRobot(Robot):
@@ -29,8 +29,9 @@ class SimulatedRobot(Robot):
         self.t = 0.0
         self._field: Any = None
         self._origin: Array | None = None
-        self._history: deque[tuple[float, Array, Array]] = deque(maxlen=200)
-        """(t, reported pose, true pose) after each advance, under a field profile."""
+        self._history: deque[tuple[float, Array]] = deque(maxlen=200)
+        """(t, true camera pose) after each advance, under a field profile (the reported pose
+        is derived from it)."""
         self._held = np.zeros(6)
         self._received = 0.0
         self.lose_next_command = False
@@ -63,29 +64,19 @@ class SimulatedRobot(Robot):
         return T @ f.hand_eye
 
     def _remember(self) -> None:
-        T = self.true_camera()
-        self._history.append((self.t, self._believed(T), T))
-
-    def _at(self, stamp: float, which: int) -> Array | None:
-        hist = self._history
-        if len(hist) < 2 or not hist[0][0] <= stamp < hist[-1][0]:
-            return None
-        k = next(i for i in range(1, len(hist)) if hist[i][0] > stamp)
-        t0, A, t1, B = hist[k - 1][0], hist[k - 1][which], hist[k][0], hist[k][which]
-        a = 0.0 if t1 <= t0 else (stamp - t0) / (t1 - t0)
-        return A @ se3_exp(a * se3_log(invert(A) @ B))
+        self._history.append((self.t, self.true_camera()))
 
     def true_camera_at(self, t: float) -> Array:
-        """The true camera pose at simulated time t (within the last second; else now)."""
-        T = self._at(t, 2)
+        """The true camera pose at simulated time t (within the kept history; else now)."""
+        T = pose_at(self._history, t)
         return self.true_camera() if T is None else T
 
     def T_base_camera(self) -> Array:
         return self._read(self._believed(self.true_camera()))
 
     def T_base_camera_at(self, stamp: float) -> Array:
-        T = self._at(stamp, 1)
-        return self.T_base_camera() if T is None else self._read(T)
+        T = pose_at(self._history, stamp)
+        return self.T_base_camera() if T is None else self._read(self._believed(T))
 
     def _read(self, T: Array) -> Array:
         """A reading of the reported pose: with encoder noise under the kinematics source."""
