@@ -211,7 +211,7 @@ def test_follow_check_judges_the_commanded_against_the_reported_motion() -> None
     from vinetwin.servo.loop import FollowCheck
 
     def drive(sent: np.ndarray, follow: float, frames: int = 45) -> tuple[int, str]:
-        check, T = FollowCheck(LoopConfig()), np.eye(4)
+        check, T = FollowCheck(LoopConfig(follow_window=1.0)), np.eye(4)
         for k in range(frames):
             why = check.update(k / 30, T, sent)
             if why:

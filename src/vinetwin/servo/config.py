@@ -189,7 +189,7 @@ class LoopConfig(JsonFields):
     max_cycle: float = 0.1
     """A frame whose command comes later than this after its capture (stamp) sends zero
     instead (s, > 0). The simulation, whose time is simulated, does not check it."""
-    follow_window: float = 1.0
+    follow_window: float = 2.0
     """The arm must follow its commands: when, over this long (s), the camera (as the robot's
     kinematics report it) moved less than `follow_fraction` of the motion sent to it, the run
     ends with the named stop "the arm does not follow" (a joint limit, a singularity, a
