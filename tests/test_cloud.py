@@ -50,6 +50,55 @@ def test_statistical_outliers_match_open3d(rng: np.random.Generator) -> None:
     assert keep[2000:].sum() < 5  # the scattered points go
 
 
+@pytest.mark.parametrize("voxel", [0.002, 0.004])
+def test_statistical_outliers_grid_search_equals_the_tree(
+    rng: np.random.Generator, voxel: float
+) -> None:
+    """With the cloud's spacing, the compiled grid search gives the k-d tree's answer: a
+    voxel-grid cloud of canes and a leaf, with far outliers the cells leave to the tree."""
+    from scipy.spatial import KDTree
+
+    from vinetwin import _kernels
+
+    t = rng.uniform(0, 0.2, 20_000)
+    cane = np.c_[t, 0.01 * np.sin(20 * t), 0.2 + 0.002 * rng.normal(size=t.size)]
+    leaf = np.c_[rng.uniform(-0.05, 0, (8000, 2)), 0.25 + rng.normal(0, 0.001, 8000)]
+    far = rng.uniform(-0.3, 0.3, (40, 3)) + [0, 0, 0.3]
+    pts, _ = voxel_downsample(np.vstack([cane, leaf, far]), voxel)
+    mean_d = _kernels.knn_mean_distance(pts, 16, 3 * voxel, 3)
+    tree_d = KDTree(pts).query(pts, k=16)[0].mean(axis=1)
+    solved = ~np.isnan(mean_d)
+    assert solved.mean() > 0.9 and (~solved).sum() >= 10  # the far points go to the tree
+    np.testing.assert_allclose(mean_d[solved], tree_d[solved], rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(
+        statistical_outliers(pts, 16, 2.0, spacing=voxel), statistical_outliers(pts, 16, 2.0)
+    )
+
+
+@pytest.mark.parametrize("voxel", [0.002, 0.004])
+def test_fused_perception_pass_equals_the_two_steps(voxel: float) -> None:
+    """`depth_voxels` (one pass) gives exactly the points and normal sums of `organised_points`
+    followed by `voxel_grid`, on a noisy scene with canes, a slanted leaf and flying pixels."""
+    from vinetwin import _kernels
+
+    cam = d405("848x480")
+    rng = np.random.default_rng(5)
+    depth = plane_depth(cam, np.array([0.3, 0.1, -0.95]), np.array([0, 0, 0.3]))
+    depth[depth > 0.38] = 0
+    depth[:, 300:340] = 0.15
+    depth[200:230, :] = 0.18
+    depth = (depth + rng.normal(0, 2e-4, depth.shape) * (depth > 0)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.02] = np.nan
+    args = (depth, cam.fx, cam.fy, cam.cx, cam.cy, 1e-6, 0.4, 0.03, 2)
+    o = (0.0005, -0.0003, 0.0001)
+    pts, nrm = _kernels.organised_points(*args, True)
+    a, an = _kernels.voxel_grid(pts, nrm, voxel, *o, True)
+    b, bn = _kernels.depth_voxels(*args, voxel, *o)
+    assert len(a) > 1000
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(an, bn)
+
+
 @pytest.mark.parametrize("tilt_deg", [0, 30, 55])
 def test_normals_of_a_tilted_plane(tilt_deg: float) -> None:
     cam = d405("848x480")

@@ -7,6 +7,8 @@ Imported lazily by `vinetwin.cloud`.
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -169,3 +171,277 @@ def window_extremes(depth: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, 
                 hole = hole or rhole[vv, u]
             near[v, u], far[v, u], holes[v, u] = lo, hi, hole
     return near, far, holes
+
+
+# ----------------------------------------------------------------------------- fused perception
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _keep_mask(depth: np.ndarray, dmin: float, dmax: float, edge_threshold: float) -> np.ndarray:
+    """Valid pixels (range) that survive the flying-pixel filter; rows in parallel."""
+    H, W = depth.shape
+    keep = np.zeros((H, W), np.bool_)
+    for v in nb.prange(H):
+        for u in range(W):
+            z = depth[v, u]
+            if not (z > dmin and z <= dmax):  # also rejects NaN
+                continue
+            ok = True
+            if edge_threshold > 0:
+                for k in range(4):
+                    vv = v + (-1 if k == 0 else (1 if k == 1 else 0))
+                    uu = u + (-1 if k == 2 else (1 if k == 3 else 0))
+                    if 0 <= vv < H and 0 <= uu < W:
+                        zn = depth[vv, uu]
+                        if zn > dmin and zn <= dmax and z > zn and z - zn > edge_threshold * zn:
+                            ok = False
+                            break
+            keep[v, u] = ok
+    return keep
+
+
+@nb.njit(cache=True, nogil=True)
+def _hash3(ix: np.int64, iy: np.int64, iz: np.int64, mask: np.int64) -> np.int64:
+    """A table slot for a voxel: the spatial hash's xor of products, then a 64-bit finaliser
+    (the xor alone keeps neighbouring voxels in neighbouring slots: long probe chains)."""
+    x = (ix * np.int64(73856093)) ^ (iy * np.int64(19349663)) ^ (iz * np.int64(83492791))
+    x = (x ^ (x >> np.int64(31))) * np.int64(-4658895280553007687)
+    x = x ^ (x >> np.int64(29))
+    return x & mask
+
+
+@nb.njit(cache=True, nogil=True)
+def depth_voxels(
+    depth: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    dmin: float,
+    dmax: float,
+    edge_threshold: float,
+    step: int,
+    voxel: float,
+    ox: float,
+    oy: float,
+    oz: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`organised_points` and `voxel_grid` in one pass, without the per-pixel arrays: the
+    centroid of each occupied voxel and the sum of its pixels' (unnormalised) normals, voxels in
+    order of first occurrence, the same numbers as the two kernels run one after the other.
+    Neighbouring pixels mostly fall in the same voxel, so the last voxel is checked before the
+    hash table (open addressing, grown as voxels appear)."""
+    H, W = depth.shape
+    keep = _keep_mask(depth, dmin, dmax, edge_threshold)
+    cap = 4096
+    mask = np.int64(cap - 1)
+    keys = np.empty((cap, 3), np.int64)
+    slot_of = np.full(cap, -1, np.int64)
+    size = 4096
+    skey = np.empty((size, 3), np.int64)
+    acc = np.empty((size, 3))
+    nacc = np.empty((size, 3))
+    cnt = np.empty(size, np.int64)
+    m = 0
+    inv = 1.0 / voxel
+    xf = np.empty(W)  # ray factors: x = xf[u] z, y = yf[v] z
+    for u in range(W):
+        xf[u] = (u - cx) / fx
+    yf = np.empty(H)
+    for v in range(H):
+        yf[v] = (v - cy) / fy
+    last_x, last_y, last_z, last_s = np.int64(0), np.int64(0), np.int64(0), -1
+    for v in range(H):
+        inner_v = step <= v < H - step
+        for u in range(W):
+            if not keep[v, u]:
+                continue
+            z = np.float64(depth[v, u])
+            px = xf[u] * z
+            py = yf[v] * z
+            pz = z
+            n0 = n1 = n2 = 0.0
+            if inner_v and step <= u < W - step:
+                if (
+                    keep[v, u - step]
+                    and keep[v, u + step]
+                    and keep[v - step, u]
+                    and keep[v + step, u]
+                ):
+                    zl, zr = np.float64(depth[v, u - step]), np.float64(depth[v, u + step])
+                    zu, zd = np.float64(depth[v - step, u]), np.float64(depth[v + step, u])
+                    ax = xf[u + step] * zr - xf[u - step] * zl
+                    ay = yf[v] * (zr - zl)
+                    az = zr - zl
+                    bx = xf[u] * (zd - zu)
+                    by = yf[v + step] * zd - yf[v - step] * zu
+                    bz = zd - zu
+                    n0 = ay * bz - az * by
+                    n1 = az * bx - ax * bz
+                    n2 = ax * by - ay * bx
+            ix = np.int64(np.floor((px - ox) * inv))
+            iy = np.int64(np.floor((py - oy) * inv))
+            iz = np.int64(np.floor((pz - oz) * inv))
+            if last_s >= 0 and ix == last_x and iy == last_y and iz == last_z:
+                s = last_s
+            else:
+                h = _hash3(ix, iy, iz, mask)
+                while True:
+                    s = slot_of[h]
+                    if s == -1 or (keys[h, 0] == ix and keys[h, 1] == iy and keys[h, 2] == iz):
+                        break
+                    h = (h + 1) & mask
+                if s == -1:
+                    s = m
+                    m += 1
+                    slot_of[h] = s
+                    keys[h, 0], keys[h, 1], keys[h, 2] = ix, iy, iz
+                    if s >= size:  # grow the accumulators
+                        size *= 2
+                        skey2 = np.empty((size, 3), np.int64)
+                        acc2 = np.empty((size, 3))
+                        nacc2 = np.empty((size, 3))
+                        cnt2 = np.empty(size, np.int64)
+                        skey2[:s] = skey[:s]
+                        acc2[:s] = acc[:s]
+                        nacc2[:s] = nacc[:s]
+                        cnt2[:s] = cnt[:s]
+                        skey, acc, nacc, cnt = skey2, acc2, nacc2, cnt2
+                    skey[s, 0], skey[s, 1], skey[s, 2] = ix, iy, iz
+                    acc[s, 0] = acc[s, 1] = acc[s, 2] = 0.0
+                    nacc[s, 0] = nacc[s, 1] = nacc[s, 2] = 0.0
+                    cnt[s] = 0
+                    if 2 * m > cap:  # keep the table at most half full: rehash
+                        cap *= 2
+                        mask = np.int64(cap - 1)
+                        keys = np.empty((cap, 3), np.int64)
+                        slot_of = np.full(cap, -1, np.int64)
+                        for r in range(m):
+                            g = _hash3(skey[r, 0], skey[r, 1], skey[r, 2], mask)
+                            while slot_of[g] != -1:
+                                g = (g + 1) & mask
+                            slot_of[g] = r
+                            keys[g, 0], keys[g, 1], keys[g, 2] = skey[r, 0], skey[r, 1], skey[r, 2]
+            last_x, last_y, last_z, last_s = ix, iy, iz, s
+            cnt[s] += 1
+            acc[s, 0] += px
+            acc[s, 1] += py
+            acc[s, 2] += pz
+            nacc[s, 0] += n0
+            nacc[s, 1] += n1
+            nacc[s, 2] += n2
+    out = np.empty((m, 3))
+    for s in range(m):
+        for k in range(3):
+            out[s, k] = acc[s, k] / cnt[s]
+    return out, nacc[:m].copy()
+
+
+@nb.njit(cache=True, nogil=True)
+def _cell_key(ix: np.int64, iy: np.int64, iz: np.int64) -> np.int64:
+    off = np.int64(1) << 20
+    return ((ix + off) << 42) | ((iy + off) << 21) | (iz + off)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _gap(d: int, lo: float, hi: float, cell: float) -> float:
+    """Distance along one axis from a point to the cell `d` cells away (0: its own), given
+    the point's distances `lo` and `hi` to its own cell's faces."""
+    if d == 0:
+        return 0.0
+    return (-d - 1) * cell + lo if d < 0 else (d - 1) * cell + hi
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def knn_mean_distance(points: np.ndarray, k: int, cell: float, rings: int) -> np.ndarray:
+    """Mean distance from each point to its k nearest points (itself included, at 0), exact,
+    by a search of grid cells of side `cell` in growing rings: after ring r every point closer
+    than r * cell has been seen, so the search stops once the k-th distance is within that.
+    NaN where `rings` rings were not enough (the caller finishes those with a k-d tree)."""
+    n = points.shape[0]
+    inv = 1.0 / cell
+    ci = np.empty((n, 3), np.int64)
+    ck = np.empty(n, np.int64)
+    for i in range(n):
+        for a in range(3):
+            ci[i, a] = np.int64(np.floor(points[i, a] * inv))
+        ck[i] = _cell_key(ci[i, 0], ci[i, 1], ci[i, 2])
+    order = np.argsort(ck)
+    # runs of equal keys, and a hash table from a key to its run
+    starts = np.empty(n + 1, np.int64)
+    runkey = np.empty(n, np.int64)
+    nr = 0
+    for j in range(n):
+        if j == 0 or ck[order[j]] != ck[order[j - 1]]:
+            starts[nr] = j
+            runkey[nr] = ck[order[j]]
+            nr += 1
+    starts[nr] = n
+    cap = 16
+    while cap < 2 * nr:
+        cap *= 2
+    mask = np.int64(cap - 1)
+    table = np.full(cap, -1, np.int64)
+    for r in range(nr):
+        j = order[starts[r]]
+        h = _hash3(ci[j, 0], ci[j, 1], ci[j, 2], mask)
+        while table[h] != -1:
+            h = (h + 1) & mask
+        table[h] = r
+    sorted_pts = np.empty((n, 3))
+    for j in range(n):
+        sorted_pts[j] = points[order[j]]
+    out = np.empty(n)
+    for i in nb.prange(n):
+        best = np.full(k, np.inf)  # ascending squared distances
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        cx_, cy_, cz_ = ci[i, 0], ci[i, 1], ci[i, 2]
+        # distance from the point to its own cell's faces, low and high side per axis
+        lx, hx = px - cx_ * cell, (cx_ + 1) * cell - px
+        ly, hy = py - cy_ * cell, (cy_ + 1) * cell - py
+        lz, hz = pz - cz_ * cell, (cz_ + 1) * cell - pz
+        inner = min(lx, hx, ly, hy, lz, hz)
+        done = False
+        for ring in range(rings + 1):
+            for dx in range(-ring, ring + 1):
+                gx = _gap(dx, lx, hx, cell)
+                for dy in range(-ring, ring + 1):
+                    gy = _gap(dy, ly, hy, cell)
+                    for dz in range(-ring, ring + 1):
+                        if max(abs(dx), abs(dy), abs(dz)) != ring:
+                            continue
+                        gz = _gap(dz, lz, hz, cell)
+                        if gx * gx + gy * gy + gz * gz > best[k - 1]:
+                            continue  # the whole cell is farther than the k-th so far
+                        key = _cell_key(cx_ + dx, cy_ + dy, cz_ + dz)
+                        h = _hash3(cx_ + dx, cy_ + dy, cz_ + dz, mask)
+                        r = -1
+                        while table[h] != -1:
+                            if runkey[table[h]] == key:
+                                r = table[h]
+                                break
+                            h = (h + 1) & mask
+                        if r < 0:
+                            continue
+                        for j in range(starts[r], starts[r + 1]):
+                            ex = sorted_pts[j, 0] - px
+                            ey = sorted_pts[j, 1] - py
+                            ez = sorted_pts[j, 2] - pz
+                            d2 = ex * ex + ey * ey + ez * ez
+                            if d2 < best[k - 1]:
+                                a = k - 1
+                                while a > 0 and best[a - 1] > d2:
+                                    best[a] = best[a - 1]
+                                    a -= 1
+                                best[a] = d2
+            # every point not yet seen lies beyond the rings searched
+            reach = ring * cell + inner
+            if best[k - 1] <= reach * reach:
+                done = True
+                break
+        if done:
+            acc = 0.0
+            for a in range(k):
+                acc += math.sqrt(best[a])
+            out[i] = acc / k
+        else:
+            out[i] = np.nan
+    return out

@@ -23,6 +23,7 @@ Open3D's `voxel_down_sample` and `remove_statistical_outlier` (tests/test_cloud.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -107,18 +108,36 @@ def voxel_downsample(
 
 
 def statistical_outliers(
-    points: npt.NDArray[np.float64], neighbors: int, std_ratio: float
+    points: npt.NDArray[np.float64],
+    neighbors: int,
+    std_ratio: float,
+    spacing: float | None = None,
 ) -> npt.NDArray[np.bool_]:
     """Mask of points to keep: mean distance to the `neighbors` nearest others within
-    mean + std_ratio * std over the cloud (Open3D's remove_statistical_outlier rule)."""
+    mean + std_ratio * std over the cloud (Open3D's remove_statistical_outlier rule).
+
+    `spacing`: the cloud's typical point spacing (its voxel size); with it the neighbours are
+    found by a compiled search of grid cells (exact, 4-10x faster than a k-d tree on a
+    voxel-grid cloud); without it, or for points the cells leave unresolved, by scipy's tree."""
     n = len(points)
     if neighbors <= 1 or n <= neighbors:
         return np.ones(n, dtype=bool)
     from scipy.spatial import KDTree
 
-    # like Open3D, the k neighbours include the point itself (at distance 0)
-    dist, _ = KDTree(points).query(points, k=neighbors)
-    mean_d = dist.mean(axis=1)
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    if spacing is not None and spacing > 0:
+        from vinetwin import _kernels
+
+        cell = spacing * max(1.0, 0.75 * math.sqrt(neighbors))
+        mean_d = _kernels.knn_mean_distance(pts, int(neighbors), cell, 3)
+        todo = np.flatnonzero(np.isnan(mean_d))
+        if len(todo):
+            dist, _ = KDTree(pts).query(pts[todo], k=neighbors)
+            mean_d[todo] = dist.mean(axis=1)
+    else:
+        # like Open3D, the k neighbours include the point itself (at distance 0)
+        dist, _ = KDTree(pts).query(pts, k=neighbors)
+        mean_d = dist.mean(axis=1)
     mu = mean_d.mean()
     sd = mean_d.std(ddof=1)
     return mean_d <= mu + std_ratio * sd
@@ -148,23 +167,23 @@ def perceive(
 
     cfg = config or PerceptionConfig()
     d = np.ascontiguousarray(camera.check_depth(depth), dtype=np.float32)
-    pts, nrm_all = _kernels.organised_points(
-        d,
-        camera.fx,
-        camera.fy,
-        camera.cx,
-        camera.cy,
-        max(cfg.min_depth, 1e-6),
-        cfg.max_depth,
-        cfg.edge_threshold,
-        2,
-        True,
-    )
+    if cfg.voxel_size > 0:
+        o = np.zeros(3) if grid_origin is None else np.asarray(grid_origin, np.float64).reshape(3)
+        # deprojection, flying-pixel filter, normals and the voxel grid in one compiled pass
+        pts, nrm = _kernels.depth_voxels(
+            d, camera.fx, camera.fy, camera.cx, camera.cy, max(cfg.min_depth, 1e-6),
+            cfg.max_depth, cfg.edge_threshold, 2, float(cfg.voxel_size), o[0], o[1], o[2],
+        )  # fmt: skip
+    else:
+        pts, nrm = _kernels.organised_points(
+            d, camera.fx, camera.fy, camera.cx, camera.cy, max(cfg.min_depth, 1e-6),
+            cfg.max_depth, cfg.edge_threshold, 2, True,
+        )  # fmt: skip
     if len(pts) == 0:
         return Cloud(np.empty((0, 3)), np.empty((0, 3)) if normals else None)
-    pts, nrm = voxel_downsample(pts, cfg.voxel_size, nrm_all, grid_origin)
-    assert nrm is not None
-    keep = statistical_outliers(pts, int(cfg.sor_neighbors), cfg.sor_std_ratio)
+    keep = statistical_outliers(
+        pts, int(cfg.sor_neighbors), cfg.sor_std_ratio, cfg.voxel_size or None
+    )
     pts, nrm = pts[keep], nrm[keep]
     norm = np.linalg.norm(nrm, axis=1)
     ok = norm > 1e-12
