@@ -17,6 +17,11 @@ class PoseError(InputError):
     """A 4x4 pose is not a finite rigid transform."""
 
 
+class ArrivalError(VinetwinError):
+    """Arrival registration refused: where the vine stands could not be established from the
+    first frame (too little agreement with the twin, an ambiguous view); nothing moved."""
+
+
 class CameraError(InputError):
     """A camera model is inconsistent (non-positive focal length, depth range, size)."""
 

@@ -250,6 +250,11 @@ class RunnerConfig(JsonFields):
     """Simulation: start this far from the pruning pose (m)."""
     start_rotation: float = 0.1
     """Simulation: and this angle (rad)."""
+    arrival: bool = False
+    """Before moving, register the first frame against the whole twin (`servo.arrival`) and
+    start from its answer instead of where the robot believes the vine is; a refusal (too
+    little agreement, ambiguous) stops the run before any motion. Needs a robot pose (franka,
+    the simulation, or a capture folder's recorded poses)."""
     profile: str = "ideal"
     """Simulation: error profile (ideal, field or a JSON file of the simulator's FieldProfile;
     see `vinetwin campaign --help`). Its twin source reconstructs the twin once (about a

@@ -142,6 +142,36 @@ def cut_in_camera(twin: Twin, pose: PruningPose) -> Array:
     return transform_points(invert(np.asarray(pose.T_vine_camera, float)), cut[None])[0]
 
 
+def arrive(source: CameraSource, twin: Twin, belief: Array | None, mesh: Any = None) -> Array:
+    """Arrival registration (`servo.arrival`) on the source's next frame: the camera's pose in
+    the vine frame, from `belief` (T_vine_camera as the robot believes it; None: the frame's
+    recorded pose in the twin's world). `mesh`: the twin's mesh (default: loaded). Raises
+    ArrivalError, naming why, when the registration refuses: the caller has not moved."""
+    from vinetwin.errors import ArrivalError
+    from vinetwin.servo.arrival import ArrivalRegistration
+
+    frame = source.read(timeout=5.0)
+    if frame is None:
+        raise ArrivalError("arrival registration: no frame from the camera in 5 s; nothing moved")
+    if belief is None:
+        if frame.T_base_camera is None:
+            raise ArrivalError(
+                "arrival registration needs where the robot believes the camera is: a robot "
+                "(franka, sim, mujoco) or a capture folder with recorded poses; nothing moved"
+            )
+        belief = invert(twin.T_world_vine) @ np.asarray(frame.T_base_camera, float)
+    m = mesh if mesh is not None else twin.load_mesh()
+    registration = ArrivalRegistration(m.vertices, m.faces, twin.camera, twin.perception)
+    try:
+        depth = frame.counts.astype(np.float32) * np.float32(frame.depth_unit)
+        result = registration.register(depth, belief)
+    finally:
+        registration.close()
+    if not result.ok or result.T_vine_camera is None:
+        raise ArrivalError(f"arrival registration refused, nothing moved: {result.reason}")
+    return result.T_vine_camera
+
+
 def hardware_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Session:
     """A live, recorded or rendered camera with a Franka or no robot."""
     robot_kind, _, host = cfg.robot.partition(":")
@@ -182,6 +212,12 @@ def hardware_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessio
             if T0 is not None:
                 servo.reset(invert(T_base_ref) @ T0)
         _check_camera(twin, source)
+        if cfg.arrival:
+            belief = None
+            if robot is not None:
+                belief = invert(twin.T_world_vine) @ robot.T_base_camera()
+            T_vine_camera = arrive(source, twin, belief)
+            servo.reset(invert(np.asarray(pose.T_vine_camera, float)) @ T_vine_camera)
     except BaseException:
         if robot is not None:
             robot.close()

@@ -155,6 +155,12 @@ class Servo:
         self._jumps: list[Array] = []
         self._found: list[Array] = []
 
+    @property
+    def initial_guess(self) -> Array:
+        """Where the next frame's ICP starts while nothing is trusted yet (T_ref_cur given to
+        `reset`; the identity if none)."""
+        return np.eye(4) if self._guess is None else self._guess.copy()
+
     def warm_up(self, depth: Any) -> None:
         """Compiles what a frame will run (perception, the ICP levels, the tight ICP and the wide
         search: numba kernels compile on their first call, 10-30 s on a fresh install) on a depth

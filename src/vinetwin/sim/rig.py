@@ -173,6 +173,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
     )
     reference = reference_cloud(twin, pose.id)
     dense = dense_reference_for(twin, pose.id, cfg.servo)
+    robot_mesh = None  # the twin the robot has, when it is not the true vine
     if sim.profile.on("twin"):  # the reference from a reconstructed twin; the scene stays true
         from vinetwin.mesh import load_mesh
         from vinetwin.render.reference import pose_seed, render_reference
@@ -181,6 +182,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
 
         path, _ = reconstructed_twin(twin, sim.profile, cfg.seed, twin.root / "field_twins")
         rebuilt = load_mesh(path)
+        robot_mesh = rebuilt
         ref_backend = get_backend("open3d", rebuilt.vertices, rebuilt.faces, twin.camera)
         rendered = render_reference(
             ref_backend, goal, twin.perception, SensorConfig(), pose_seed(0, pose.id)
@@ -212,6 +214,16 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
         arm=arm, T_flange_camera=twin.T_flange_camera, watchdog=cfg.limits.watchdog, cut=cut,
         dense_reference=dense,
     )  # fmt: skip
+    if cfg.arrival:  # where the robot believes the camera is: its first guess, in the vine frame
+        from vinetwin.servo.runner import arrive
+
+        believed = goal @ rig.servo.initial_guess
+        try:
+            T_vine_camera = arrive(rig.source, twin, believed, robot_mesh or mesh)
+        except BaseException:
+            rig.source.close()
+            raise
+        rig.servo.reset(invert(goal) @ T_vine_camera)
     return Session(
         rig.servo,
         rig.source,
