@@ -209,6 +209,104 @@ def _hash3(ix: np.int64, iy: np.int64, iz: np.int64, mask: np.int64) -> np.int64
 
 
 @nb.njit(cache=True, nogil=True)
+def _slot(
+    keys: np.ndarray, slot_of: np.ndarray, mask: np.int64, ix: np.int64, iy: np.int64, iz: np.int64
+) -> tuple[np.int64, np.int64]:
+    """The table position of a voxel and its slot (-1 if absent: the position is then free)."""
+    h = _hash3(ix, iy, iz, mask)
+    while True:
+        s = slot_of[h]
+        if s == -1 or (keys[h, 0] == ix and keys[h, 1] == iy and keys[h, 2] == iz):
+            return h, s
+        h = (h + 1) & mask
+
+
+@nb.njit(cache=True, nogil=True)
+def _voxel_rows(
+    depth: np.ndarray,
+    keep: np.ndarray,
+    xf: np.ndarray,
+    yf: np.ndarray,
+    v0: int,
+    v1: int,
+    step: int,
+    inv: float,
+    ox: float,
+    oy: float,
+    oz: float,
+    skey: np.ndarray,
+    acc: np.ndarray,
+    nacc: np.ndarray,
+    cnt: np.ndarray,
+) -> int:
+    """Rows v0..v1 of `depth_voxels` into the given arrays (room for one voxel per kept pixel):
+    each voxel's key, sums of points and normals, pixel count, in order of first occurrence.
+    Returns the number of voxels."""
+    H, W = depth.shape
+    cap = 16
+    while cap < 2 * skey.shape[0]:
+        cap *= 2
+    mask = np.int64(cap - 1)
+    keys = np.empty((cap, 3), np.int64)
+    slot_of = np.full(cap, -1, np.int64)
+    m = 0
+    last_x, last_y, last_z, last_s = np.int64(0), np.int64(0), np.int64(0), -1
+    for v in range(v0, v1):
+        inner_v = step <= v < H - step
+        for u in range(W):
+            if not keep[v, u]:
+                continue
+            z = np.float64(depth[v, u])
+            px = xf[u] * z
+            py = yf[v] * z
+            n0 = n1 = n2 = 0.0
+            if (
+                inner_v
+                and step <= u < W - step
+                and keep[v, u - step]
+                and keep[v, u + step]
+                and keep[v - step, u]
+                and keep[v + step, u]
+            ):
+                zl, zr = np.float64(depth[v, u - step]), np.float64(depth[v, u + step])
+                zu, zd = np.float64(depth[v - step, u]), np.float64(depth[v + step, u])
+                ax = xf[u + step] * zr - xf[u - step] * zl
+                ay = yf[v] * (zr - zl)
+                az = zr - zl
+                bx = xf[u] * (zd - zu)
+                by = yf[v + step] * zd - yf[v - step] * zu
+                bz = zd - zu
+                n0 = ay * bz - az * by
+                n1 = az * bx - ax * bz
+                n2 = ax * by - ay * bx
+            ix = np.int64(np.floor((px - ox) * inv))
+            iy = np.int64(np.floor((py - oy) * inv))
+            iz = np.int64(np.floor((z - oz) * inv))
+            if last_s >= 0 and ix == last_x and iy == last_y and iz == last_z:
+                s = last_s
+            else:  # neighbouring pixels mostly share a voxel: the table only on a change
+                h, s = _slot(keys, slot_of, mask, ix, iy, iz)
+                if s == -1:
+                    s = m
+                    m += 1
+                    slot_of[h] = s
+                    keys[h, 0], keys[h, 1], keys[h, 2] = ix, iy, iz
+                    skey[s, 0], skey[s, 1], skey[s, 2] = ix, iy, iz
+                    acc[s, 0] = acc[s, 1] = acc[s, 2] = 0.0
+                    nacc[s, 0] = nacc[s, 1] = nacc[s, 2] = 0.0
+                    cnt[s] = 0
+                last_x, last_y, last_z, last_s = ix, iy, iz, s
+            cnt[s] += 1
+            acc[s, 0] += px
+            acc[s, 1] += py
+            acc[s, 2] += z
+            nacc[s, 0] += n0
+            nacc[s, 1] += n1
+            nacc[s, 2] += n2
+    return m
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
 def depth_voxels(
     depth: np.ndarray,
     fx: float,
@@ -223,116 +321,92 @@ def depth_voxels(
     ox: float,
     oy: float,
     oz: float,
+    threads: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """`organised_points` and `voxel_grid` in one pass, without the per-pixel arrays: the
     centroid of each occupied voxel and the sum of its pixels' (unnormalised) normals, voxels in
-    order of first occurrence, the same numbers as the two kernels run one after the other.
-    Neighbouring pixels mostly fall in the same voxel, so the last voxel is checked before the
-    hash table (open addressing, grown as voxels appear)."""
+    order of first occurrence, as the two kernels run one after the other give them. Bands of
+    rows run in parallel, each with its own voxel table, merged in row order (a voxel that
+    straddles two bands sums their partial sums: equal to the two-step result to rounding)."""
     H, W = depth.shape
     keep = _keep_mask(depth, dmin, dmax, edge_threshold)
-    cap = 4096
-    mask = np.int64(cap - 1)
-    keys = np.empty((cap, 3), np.int64)
-    slot_of = np.full(cap, -1, np.int64)
-    size = 4096
-    skey = np.empty((size, 3), np.int64)
-    acc = np.empty((size, 3))
-    nacc = np.empty((size, 3))
-    cnt = np.empty(size, np.int64)
-    m = 0
-    inv = 1.0 / voxel
     xf = np.empty(W)  # ray factors: x = xf[u] z, y = yf[v] z
     for u in range(W):
         xf[u] = (u - cx) / fx
     yf = np.empty(H)
     for v in range(H):
         yf[v] = (v - cy) / fy
-    last_x, last_y, last_z, last_s = np.int64(0), np.int64(0), np.int64(0), -1
+    row_kept = np.zeros(H + 1, np.int64)  # cumulative kept pixels before each row
     for v in range(H):
-        inner_v = step <= v < H - step
+        c = 0
         for u in range(W):
-            if not keep[v, u]:
-                continue
-            z = np.float64(depth[v, u])
-            px = xf[u] * z
-            py = yf[v] * z
-            pz = z
-            n0 = n1 = n2 = 0.0
-            if inner_v and step <= u < W - step:
-                if (
-                    keep[v, u - step]
-                    and keep[v, u + step]
-                    and keep[v - step, u]
-                    and keep[v + step, u]
-                ):
-                    zl, zr = np.float64(depth[v, u - step]), np.float64(depth[v, u + step])
-                    zu, zd = np.float64(depth[v - step, u]), np.float64(depth[v + step, u])
-                    ax = xf[u + step] * zr - xf[u - step] * zl
-                    ay = yf[v] * (zr - zl)
-                    az = zr - zl
-                    bx = xf[u] * (zd - zu)
-                    by = yf[v + step] * zd - yf[v - step] * zu
-                    bz = zd - zu
-                    n0 = ay * bz - az * by
-                    n1 = az * bx - ax * bz
-                    n2 = ax * by - ay * bx
-            ix = np.int64(np.floor((px - ox) * inv))
-            iy = np.int64(np.floor((py - oy) * inv))
-            iz = np.int64(np.floor((pz - oz) * inv))
-            if last_s >= 0 and ix == last_x and iy == last_y and iz == last_z:
-                s = last_s
+            c += keep[v, u]
+        row_kept[v + 1] = row_kept[v] + c
+    total = row_kept[H]
+    bands = max(1, min(threads, H // 32, total // 4096 + 1))
+    bounds = np.zeros(bands + 1, np.int64)  # band b: rows bounds[b]..bounds[b + 1]
+    bounds[bands] = H
+    v = 0
+    for b in range(1, bands):
+        while v < H and row_kept[v] < total * b // bands:
+            v += 1
+        bounds[b] = v
+    skey = np.empty((total, 3), np.int64)
+    acc = np.empty((total, 3))
+    nacc = np.empty((total, 3))
+    cnt = np.empty(total, np.int64)
+    found = np.zeros(bands, np.int64)
+    inv = 1.0 / voxel
+    for b in nb.prange(bands):
+        lo, hi = row_kept[bounds[b]], row_kept[bounds[b + 1]]
+        found[b] = _voxel_rows(
+            depth, keep, xf, yf, bounds[b], bounds[b + 1], step, inv, ox, oy, oz,
+            skey[lo:hi], acc[lo:hi], nacc[lo:hi], cnt[lo:hi],
+        )  # fmt: skip
+    if bands == 1:
+        m = found[0]
+        out = np.empty((m, 3))
+        for s in range(m):
+            for k in range(3):
+                out[s, k] = acc[s, k] / cnt[s]
+        return out, nacc[:m].copy()
+    # merge the bands in row order: first occurrences stay in order
+    n = 0
+    for b in range(bands):
+        n += found[b]
+    cap = 16
+    while cap < 2 * n:
+        cap *= 2
+    mask = np.int64(cap - 1)
+    keys = np.empty((cap, 3), np.int64)
+    slot_of = np.full(cap, -1, np.int64)
+    macc = np.empty((n, 3))
+    mnacc = np.empty((n, 3))
+    mcnt = np.empty(n, np.int64)
+    m = 0
+    for b in range(bands):
+        lo = row_kept[bounds[b]]
+        for r in range(lo, lo + found[b]):
+            h, s = _slot(keys, slot_of, mask, skey[r, 0], skey[r, 1], skey[r, 2])
+            if s == -1:
+                s = m
+                m += 1
+                slot_of[h] = s
+                keys[h, 0], keys[h, 1], keys[h, 2] = skey[r, 0], skey[r, 1], skey[r, 2]
+                for k in range(3):
+                    macc[s, k] = acc[r, k]
+                    mnacc[s, k] = nacc[r, k]
+                mcnt[s] = cnt[r]
             else:
-                h = _hash3(ix, iy, iz, mask)
-                while True:
-                    s = slot_of[h]
-                    if s == -1 or (keys[h, 0] == ix and keys[h, 1] == iy and keys[h, 2] == iz):
-                        break
-                    h = (h + 1) & mask
-                if s == -1:
-                    s = m
-                    m += 1
-                    slot_of[h] = s
-                    keys[h, 0], keys[h, 1], keys[h, 2] = ix, iy, iz
-                    if s >= size:  # grow the accumulators
-                        size *= 2
-                        skey2 = np.empty((size, 3), np.int64)
-                        acc2 = np.empty((size, 3))
-                        nacc2 = np.empty((size, 3))
-                        cnt2 = np.empty(size, np.int64)
-                        skey2[:s] = skey[:s]
-                        acc2[:s] = acc[:s]
-                        nacc2[:s] = nacc[:s]
-                        cnt2[:s] = cnt[:s]
-                        skey, acc, nacc, cnt = skey2, acc2, nacc2, cnt2
-                    skey[s, 0], skey[s, 1], skey[s, 2] = ix, iy, iz
-                    acc[s, 0] = acc[s, 1] = acc[s, 2] = 0.0
-                    nacc[s, 0] = nacc[s, 1] = nacc[s, 2] = 0.0
-                    cnt[s] = 0
-                    if 2 * m > cap:  # keep the table at most half full: rehash
-                        cap *= 2
-                        mask = np.int64(cap - 1)
-                        keys = np.empty((cap, 3), np.int64)
-                        slot_of = np.full(cap, -1, np.int64)
-                        for r in range(m):
-                            g = _hash3(skey[r, 0], skey[r, 1], skey[r, 2], mask)
-                            while slot_of[g] != -1:
-                                g = (g + 1) & mask
-                            slot_of[g] = r
-                            keys[g, 0], keys[g, 1], keys[g, 2] = skey[r, 0], skey[r, 1], skey[r, 2]
-            last_x, last_y, last_z, last_s = ix, iy, iz, s
-            cnt[s] += 1
-            acc[s, 0] += px
-            acc[s, 1] += py
-            acc[s, 2] += pz
-            nacc[s, 0] += n0
-            nacc[s, 1] += n1
-            nacc[s, 2] += n2
+                for k in range(3):
+                    macc[s, k] += acc[r, k]
+                    mnacc[s, k] += nacc[r, k]
+                mcnt[s] += cnt[r]
     out = np.empty((m, 3))
     for s in range(m):
         for k in range(3):
-            out[s, k] = acc[s, k] / cnt[s]
-    return out, nacc[:m].copy()
+            out[s, k] = macc[s, k] / mcnt[s]
+    return out, mnacc[:m].copy()
 
 
 @nb.njit(cache=True, nogil=True)
@@ -351,11 +425,14 @@ def _gap(d: int, lo: float, hi: float, cell: float) -> float:
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def knn_mean_distance(points: np.ndarray, k: int, cell: float, rings: int) -> np.ndarray:
+def knn_mean_distance(
+    points: np.ndarray, k: int, cell: float, rings: int, threads: int
+) -> np.ndarray:
     """Mean distance from each point to its k nearest points (itself included, at 0), exact,
     by a search of grid cells of side `cell` in growing rings: after ring r every point closer
     than r * cell has been seen, so the search stops once the k-th distance is within that.
-    NaN where `rings` rings were not enough (the caller finishes those with a k-d tree)."""
+    NaN where `rings` rings were not enough (the caller finishes those with a k-d tree).
+    `threads`: numba's thread count (passed in: a kernel that asks numba cannot be cached)."""
     n = points.shape[0]
     inv = 1.0 / cell
     ci = np.empty((n, 3), np.int64)
@@ -390,58 +467,84 @@ def knn_mean_distance(points: np.ndarray, k: int, cell: float, rings: int) -> np
     for j in range(n):
         sorted_pts[j] = points[order[j]]
     out = np.empty(n)
-    for i in nb.prange(n):
-        best = np.full(k, np.inf)  # ascending squared distances
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        cx_, cy_, cz_ = ci[i, 0], ci[i, 1], ci[i, 2]
-        # distance from the point to its own cell's faces, low and high side per axis
-        lx, hx = px - cx_ * cell, (cx_ + 1) * cell - px
-        ly, hy = py - cy_ * cell, (cy_ + 1) * cell - py
-        lz, hz = pz - cz_ * cell, (cz_ + 1) * cell - pz
-        inner = min(lx, hx, ly, hy, lz, hz)
-        done = False
-        for ring in range(rings + 1):
-            for dx in range(-ring, ring + 1):
-                gx = _gap(dx, lx, hx, cell)
-                for dy in range(-ring, ring + 1):
-                    gy = _gap(dy, ly, hy, cell)
-                    for dz in range(-ring, ring + 1):
-                        if max(abs(dx), abs(dy), abs(dz)) != ring:
-                            continue
-                        gz = _gap(dz, lz, hz, cell)
-                        if gx * gx + gy * gy + gz * gz > best[k - 1]:
-                            continue  # the whole cell is farther than the k-th so far
-                        key = _cell_key(cx_ + dx, cy_ + dy, cz_ + dz)
-                        h = _hash3(cx_ + dx, cy_ + dy, cz_ + dz, mask)
-                        r = -1
-                        while table[h] != -1:
-                            if runkey[table[h]] == key:
-                                r = table[h]
-                                break
-                            h = (h + 1) & mask
-                        if r < 0:
-                            continue
-                        for j in range(starts[r], starts[r + 1]):
-                            ex = sorted_pts[j, 0] - px
-                            ey = sorted_pts[j, 1] - py
-                            ez = sorted_pts[j, 2] - pz
-                            d2 = ex * ex + ey * ey + ez * ez
-                            if d2 < best[k - 1]:
-                                a = k - 1
-                                while a > 0 and best[a - 1] > d2:
-                                    best[a] = best[a - 1]
-                                    a -= 1
-                                best[a] = d2
-            # every point not yet seen lies beyond the rings searched
-            reach = ring * cell + inner
-            if best[k - 1] <= reach * reach:
-                done = True
-                break
-        if done:
-            acc = 0.0
-            for a in range(k):
-                acc += math.sqrt(best[a])
-            out[i] = acc / k
-        else:
-            out[i] = np.nan
+    chunks = max(1, min(threads * 4, n // 256))
+    size = (n + chunks - 1) // chunks
+    for chunk in nb.prange(chunks):
+        best = np.empty(k)  # ascending squared distances, one buffer per chunk
+        for i in range(chunk * size, min(n, (chunk + 1) * size)):
+            _knn_one(
+                points, i, k, cell, rings, ci, starts, runkey, table, mask, sorted_pts, best, out
+            )
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _knn_one(
+    points: np.ndarray,
+    i: int,
+    k: int,
+    cell: float,
+    rings: int,
+    ci: np.ndarray,
+    starts: np.ndarray,
+    runkey: np.ndarray,
+    table: np.ndarray,
+    mask: np.int64,
+    sorted_pts: np.ndarray,
+    best: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """`knn_mean_distance` for point i into out[i]."""
+    best[:] = np.inf
+    px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+    cx_, cy_, cz_ = ci[i, 0], ci[i, 1], ci[i, 2]
+    # distance from the point to its own cell's faces, low and high side per axis
+    lx, hx = px - cx_ * cell, (cx_ + 1) * cell - px
+    ly, hy = py - cy_ * cell, (cy_ + 1) * cell - py
+    lz, hz = pz - cz_ * cell, (cz_ + 1) * cell - pz
+    inner = min(lx, hx, ly, hy, lz, hz)
+    done = False
+    for ring in range(rings + 1):
+        for dx in range(-ring, ring + 1):
+            gx = _gap(dx, lx, hx, cell)
+            for dy in range(-ring, ring + 1):
+                gy = _gap(dy, ly, hy, cell)
+                for dz in range(-ring, ring + 1):
+                    if max(abs(dx), abs(dy), abs(dz)) != ring:
+                        continue
+                    gz = _gap(dz, lz, hz, cell)
+                    if gx * gx + gy * gy + gz * gz > best[k - 1]:
+                        continue  # the whole cell is farther than the k-th so far
+                    key = _cell_key(cx_ + dx, cy_ + dy, cz_ + dz)
+                    h = _hash3(cx_ + dx, cy_ + dy, cz_ + dz, mask)
+                    r = -1
+                    while table[h] != -1:
+                        if runkey[table[h]] == key:
+                            r = table[h]
+                            break
+                        h = (h + 1) & mask
+                    if r < 0:
+                        continue
+                    for j in range(starts[r], starts[r + 1]):
+                        ex = sorted_pts[j, 0] - px
+                        ey = sorted_pts[j, 1] - py
+                        ez = sorted_pts[j, 2] - pz
+                        d2 = ex * ex + ey * ey + ez * ez
+                        if d2 < best[k - 1]:
+                            a = k - 1
+                            while a > 0 and best[a - 1] > d2:
+                                best[a] = best[a - 1]
+                                a -= 1
+                            best[a] = d2
+        # every point not yet seen lies beyond the rings searched
+        reach = ring * cell + inner
+        if best[k - 1] <= reach * reach:
+            done = True
+            break
+    if done:
+        acc = 0.0
+        for a in range(k):
+            acc += math.sqrt(best[a])
+        out[i] = acc / k
+    else:
+        out[i] = np.nan

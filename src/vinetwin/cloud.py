@@ -78,6 +78,12 @@ class Cloud:
         return len(self) == 0
 
 
+def _threads() -> int:
+    import numba
+
+    return int(numba.get_num_threads())
+
+
 def voxel_downsample(
     points: npt.NDArray[np.float64],
     voxel: float,
@@ -129,7 +135,7 @@ def statistical_outliers(
         from vinetwin import _kernels
 
         cell = spacing * max(1.0, 0.75 * math.sqrt(neighbors))
-        mean_d = _kernels.knn_mean_distance(pts, int(neighbors), cell, 3)
+        mean_d = _kernels.knn_mean_distance(pts, int(neighbors), cell, 3, _threads())
         todo = np.flatnonzero(np.isnan(mean_d))
         if len(todo):
             dist, _ = KDTree(pts).query(pts[todo], k=neighbors)
@@ -173,6 +179,7 @@ def perceive(
         pts, nrm = _kernels.depth_voxels(
             d, camera.fx, camera.fy, camera.cx, camera.cy, max(cfg.min_depth, 1e-6),
             cfg.max_depth, cfg.edge_threshold, 2, float(cfg.voxel_size), o[0], o[1], o[2],
+            _threads(),
         )  # fmt: skip
     else:
         pts, nrm = _kernels.organised_points(

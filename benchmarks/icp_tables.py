@@ -1,0 +1,64 @@
+"""Markdown tables from `benchmarks/icp.py --json` files: per vine and voxel, each variant's time
+as a ratio to the fastest peer implementing it (LM: to our point-to-plane), and the servo cycle.
+
+    .venv/bin/python benchmarks/icp_tables.py benchmarks/results/icp*.json
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+VARIANTS = ("point_to_point", "point_to_plane", "symmetric", "lm")
+
+
+def main() -> None:
+    runs = [json.loads(Path(p).read_text()) for p in sys.argv[1:]]
+    print("ICP time / fastest peer's (same objective, same clouds, same levels; LM: / our "
+          "point-to-plane); median translation error ours / the peer's (mm)\n")  # fmt: skip
+    print("| vine | voxel | start | points | point-to-point | point-to-plane | symmetric | LM |")
+    print("|---|---|---|---|---|---|---|---|")
+    for run in runs:
+        for t in run["tables"]:
+            rows = {r["method"]: r for r in t["rows"]}
+            cells = []
+            for v in VARIANTS:
+                r = rows[f"vinetwin {v}"]
+                if v == "lm":
+                    cells.append(f"{r['ratio_to_our_point_to_plane']:.2f}")
+                    continue
+                peer = rows[r["fastest_peer"]]
+                cells.append(
+                    f"{r['ratio_to_fastest_peer']:.2f} ({r['ms']:.1f} vs {peer['ms']:.1f} ms; "
+                    f"{r['t_mm_median']:.2f} / {peer['t_mm_median']:.2f})"
+                )
+            print(f"| {run.get('twin', run.get('sample'))} | {1000 * t['voxel']:.0f} mm | "
+                  f"{t['start']} | {t['points']} | " + " | ".join(cells) + " |")  # fmt: skip
+    print("\nServo cycle (perception + ICP + control), Hz; perception ms in brackets\n")
+    print("| vine | voxel | start | point-to-point | point-to-plane | symmetric | LM |")
+    print("|---|---|---|---|---|---|---|")
+    for run in runs:
+        cyc = run.get("cycles", [])
+        keys = sorted(
+            {(c["voxel"], c.get("start", "warm")) for c in cyc},
+            key=lambda k: (-k[0], k[1] != "tracking"),
+        )
+        for voxel, start in keys:
+            by = {
+                c["variant"]: c
+                for c in cyc
+                if c["voxel"] == voxel and c.get("start", "warm") == start
+            }
+            cells = [
+                f"{by[v]['hz']:.0f} ({by[v]['perception_ms']:.1f})" for v in VARIANTS if v in by
+            ]
+            print(
+                f"| {run.get('twin', run.get('sample'))} | {1000 * voxel:.0f} mm | {start} | "
+                + " | ".join(cells)
+                + " |"
+            )
+
+
+if __name__ == "__main__":
+    main()
