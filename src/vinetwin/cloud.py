@@ -17,8 +17,11 @@ into a pose error. Steps (the paper's, plus a cheap image-space filter):
    pixels per voxel. A voxel made only of pixels whose normal is undefined (a 1-2 px sliver at
    a silhouette) is dropped when normals are asked for.
 
-The per-pixel and per-point loops are compiled (`vinetwin._kernels`, numba); the steps match
-Open3D's `voxel_down_sample` and `remove_statistical_outlier` (tests/test_cloud.py compares them).
+The per-pixel and per-point loops are compiled (`vinetwin._kernels`, numba): steps 1-4 and the
+per-pixel normals run as one pass over the image (bands of rows in parallel, no per-pixel
+arrays), and step 5 finds each point's neighbours by a search of grid cells instead of a k-d
+tree (exact: the same answer as the tree, `tests/test_cloud.py`). The steps match Open3D's
+`voxel_down_sample` and `remove_statistical_outlier` (tests/test_cloud.py compares them).
 """
 
 from __future__ import annotations

@@ -169,6 +169,7 @@ def plan(twin: Twin, cfg: CampaignConfig, cache: Path | None = None) -> list[_Jo
             job(f"ablation/{src}/{v}", "ablation", 0,
                 replace(base, variant=v, profile=replace(profile, sources=(src,))))
             for src in profile.sources
+            if src != "dynamics" or robot is not None  # no arm: nothing to simulate
             for v in cfg.variants
         ]  # fmt: skip
     if cfg.disturbance:

@@ -94,7 +94,9 @@ class FaultConfig(JsonFields):
 
 
 #: The field profile's error sources (`FieldProfile.sources`), each switchable on its own.
-FieldSource = Literal["twin", "registration", "hand_eye", "kinematics", "timing", "wind", "depth"]
+FieldSource = Literal[
+    "twin", "registration", "hand_eye", "kinematics", "timing", "wind", "depth", "dynamics"
+]
 FIELD_SOURCES: tuple[str, ...] = get_args(FieldSource)
 
 
@@ -107,7 +109,8 @@ class FieldProfile(JsonFields):
     comes from the run's seed, one random stream per source."""
 
     sources: tuple[FieldSource, ...] = ()
-    """Sources switched on: twin, registration, hand_eye, kinematics, timing, wind, depth."""
+    """Sources switched on: twin, registration, hand_eye, kinematics, timing, wind, depth,
+    dynamics (the MuJoCo Panda only: joint velocities tracked through its actuators)."""
     twin_frames: int = 60
     """twin: the reference is rendered from a twin reconstructed (TSDF) from this many
     synthetic D405 frames of the true vine; the scene stays the true vine."""

@@ -37,6 +37,8 @@ PANDA_DIR = Path(__file__).resolve().parent / "assets" / "panda"
 ARM_JOINTS = tuple(f"joint{i}" for i in range(1, 8))
 #: Franka's published joint velocity limits (rad/s), used when a model does not carry them.
 VELOCITY_LIMITS = (2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61)
+#: Franka's joint acceleration limits (rad/s^2, the Panda's datasheet).
+ACCELERATION_LIMITS = (15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0)
 FLANGE_OFFSET = 0.107
 
 
@@ -57,7 +59,11 @@ class PandaArm:
         T_base_vine: Any = None,
         damping: float = 0.02,
         limit_avoidance: float = 1.0,
+        dynamics: bool = False,
     ) -> None:
+        """`dynamics`: `move` tracks the joint velocities through the model's position
+        actuators in MuJoCo's physics (acceleration-limited references, the actuators' gains
+        and torque limits) instead of integrating them exactly (see `drive`)."""
         mj = _lazy.mujoco()
         path = Path(model) if model else PANDA_DIR / "scene.xml"
         if path.is_dir():
@@ -81,6 +87,7 @@ class PandaArm:
         # the D405 body: its frame is the optical frame (OpenCV); housing 42 x 42 x 23 mm behind
         # the lens plane
         cam_body = link7.add_body(name="d405", pos=T7c[:3, 3].tolist(), quat=_wxyz(T7c[:3, :3]))
+        cam_body.gravcomp = 1.0  # the payload the robot is told it carries
         cam_body.add_site(name="d405", size=[0.008, 0, 0])
         cam_body.add_geom(
             name="d405_housing", type=mj.mjtGeom.mjGEOM_BOX, size=[0.021, 0.021, 0.0115],
@@ -122,6 +129,12 @@ class PandaArm:
         self.site = m.site("d405").id
         self.damping = damping
         self.limit_avoidance = limit_avoidance
+        self.amax = np.asarray(ACCELERATION_LIMITS)
+        self._q_ref = np.zeros(7)
+        self._qd_ref = np.zeros(7)
+        self.dynamics = dynamics
+        if dynamics and m.nu < 7:
+            raise InputError(f"{path}: no joint actuators, so no dynamics in the loop")
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -133,6 +146,13 @@ class PandaArm:
         else:
             mj.mj_resetData(self.model, self.data)
         mj.mj_forward(self.model, self.data)
+        self._sync()
+
+    def _sync(self) -> None:
+        """The actuators' references follow the joints, at rest."""
+        self._q_ref = self.q
+        self._qd_ref = np.zeros(7)
+        self.data.qvel[self.dadr] = 0.0
 
     @property
     def q(self) -> Array:
@@ -142,6 +162,7 @@ class PandaArm:
         self.data.qpos[self.qadr] = np.clip(np.asarray(q, float), self.lower, self.upper)
         self._mj.mj_kinematics(self.model, self.data)
         self._mj.mj_comPos(self.model, self.data)
+        self._sync()
 
     def pose(self) -> Array:
         """T_base_camera: the D405's optical frame (OpenCV) in the robot base."""
@@ -185,8 +206,46 @@ class PandaArm:
         return qdot / scale if scale > 1 else qdot
 
     def move(self, twist: Any, dt: float) -> None:
-        """Applies the camera twist for dt seconds through the joints."""
-        self.set_q(self.q + self.joint_velocities(twist) * dt)
+        """Applies the camera twist for dt seconds through the joints: exactly, or with
+        `dynamics` through the actuators (`drive`)."""
+        if self.dynamics:
+            self.drive(twist, dt)
+        else:
+            self.set_q(self.q + self.joint_velocities(twist) * dt)
+
+    def drive(self, twist: Any, dt: float) -> None:
+        """dt seconds of MuJoCo physics with the joint velocities of `twist` as the command:
+        each physics step moves the actuators' position references at a velocity that
+        approaches the command within the joints' acceleration limits (and their velocity
+        limits); the position servos (their gains, damping and torque limits, gravity
+        compensated) make the arm follow, with the lag and overshoot that brings."""
+        mj = self._mj
+        h = float(self.model.opt.timestep)
+        steps = max(1, int(round(dt / h)))
+        qdot = self.joint_velocities(twist) if np.any(twist) else np.zeros(7)
+        # the vine is there to be seen: MuJoCo collides meshes by their convex hull, which holds
+        # the camera at its standoff, so contacts are off while driving (`step_physics` checks
+        # the scene with them on)
+        flags = self.model.opt.disableflags
+        self.model.opt.disableflags = flags | int(mj.mjtDisableBit.mjDSBL_CONTACT)
+        try:
+            self._drive_steps(qdot, h, steps)
+        finally:
+            self.model.opt.disableflags = flags
+        mj.mj_kinematics(self.model, self.data)
+        mj.mj_comPos(self.model, self.data)
+
+    def _drive_steps(self, qdot: Array, h: float, steps: int) -> None:
+        mj = self._mj
+        for _ in range(steps):
+            dv = np.clip(qdot - self._qd_ref, -self.amax * h, self.amax * h)
+            self._qd_ref = np.clip(self._qd_ref + dv, -self.vmax, self.vmax)
+            q_ref = self._q_ref + self._qd_ref * h
+            hit = (q_ref <= self.lower) | (q_ref >= self.upper)
+            self._qd_ref[hit] = 0.0
+            self._q_ref = np.clip(q_ref, self.lower, self.upper)
+            self.data.ctrl[:7] = self._q_ref
+            mj.mj_step(self.model, self.data)
 
     def reach(
         self, T_base_camera: Any, iterations: int = 300, tol: float = 1e-4, seeds: int = 24
@@ -206,8 +265,10 @@ class PandaArm:
                 nt, nr = float(np.linalg.norm(err[:3])), float(np.linalg.norm(err[3:]))
                 if nt < tol and nr < tol:
                     break
-                # bounded steps: at most 5 cm and 0.2 rad of camera motion each
-                self.move(err * min(1.0, 0.05 / max(nt, 1e-12), 0.2 / max(nr, 1e-12)), 1.0)
+                # bounded steps: at most 5 cm and 0.2 rad of camera motion each (kinematic: the
+                # arm is placed, not driven)
+                step = err * min(1.0, 0.05 / max(nt, 1e-12), 0.2 / max(nr, 1e-12))
+                self.set_q(self.q + self.joint_velocities(step))
             dt, dr = pose_error(self.pose(), target)
             if dt + 0.1 * dr < best[0]:
                 best = (dt + 0.1 * dr, self.q)

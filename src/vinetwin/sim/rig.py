@@ -130,6 +130,7 @@ def build_rig(
         robot = KinematicRobot(start, T_flange_camera, limits)
     else:
         T_base_vine = np.asarray(arm.T_base_vine, float)
+        arm.dynamics = cfg.profile.on("dynamics")
         ok, dt_, dr_ = arm.reach(T_base_vine @ start)
         if not ok:
             raise InputError(

@@ -96,6 +96,8 @@ class SimulatedRobot(Robot):
             if self._field is not None:  # the twist moves the believed camera frame
                 twist = adjoint(self._field.hand_eye) @ twist
             self._apply(twist, run)
+        if run < dt:
+            self._coast(dt - run)
         self.t += dt
         if self._field is not None:
             self._remember()
@@ -116,6 +118,9 @@ class SimulatedRobot(Robot):
     @abstractmethod
     def _apply(self, twist: Array, dt: float) -> None:
         """Moves the true camera by the body twist for dt s."""
+
+    def _coast(self, dt: float) -> None:  # noqa: B027 - a kinematic arm stops at once
+        """dt s without a command (after the watchdog's expiry)."""
 
     @abstractmethod
     def _true_camera(self) -> Array: ...
@@ -173,5 +178,9 @@ class MujocoRobot(SimulatedRobot):
         return self.arm.pose()
 
     def _apply(self, twist: Array, dt: float) -> None:
-        if np.any(twist):
+        if np.any(twist) or self.arm.dynamics:  # with dynamics a stop takes time too
             self.arm.move(twist, dt)
+
+    def _coast(self, dt: float) -> None:
+        if self.arm.dynamics:
+            self.arm.move(np.zeros(6), dt)
