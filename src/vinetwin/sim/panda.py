@@ -221,7 +221,7 @@ class PandaArm:
         compensated) make the arm follow, with the lag and overshoot that brings."""
         mj = self._mj
         h = float(self.model.opt.timestep)
-        steps = max(1, int(round(dt / h)))
+        steps = max(1, round(dt / h))
         qdot = self.joint_velocities(twist) if np.any(twist) else np.zeros(7)
         # the vine is there to be seen: MuJoCo collides meshes by their convex hull, which holds
         # the camera at its standoff, so contacts are off while driving (`step_physics` checks

@@ -119,7 +119,7 @@ class SimulatedRobot(Robot):
     def _apply(self, twist: Array, dt: float) -> None:
         """Moves the true camera by the body twist for dt s."""
 
-    def _coast(self, dt: float) -> None:  # noqa: B027 - a kinematic arm stops at once
+    def _coast(self, dt: float) -> None:  # a kinematic arm stops at once
         """dt s without a command (after the watchdog's expiry)."""
 
     @abstractmethod
