@@ -8,6 +8,7 @@ Imported lazily by `vinetwin.cloud`.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -211,7 +212,7 @@ def _hash3(ix: np.int64, iy: np.int64, iz: np.int64, mask: np.int64) -> np.int64
 @nb.njit(cache=True, nogil=True)
 def _slot(
     keys: np.ndarray, slot_of: np.ndarray, mask: np.int64, ix: np.int64, iy: np.int64, iz: np.int64
-) -> tuple[np.int64, np.int64]:
+) -> tuple[Any, Any]:
     """The table position of a voxel and its slot (-1 if absent: the position is then free)."""
     h = _hash3(ix, iy, iz, mask)
     while True:
