@@ -29,6 +29,8 @@ def test_icp_benchmark_quick(tmp_path: Path) -> None:
             assert methods[f"vinetwin {v}"]["ratio_to_fastest_peer"] > 0
         assert methods["vinetwin lm"]["ratio_to_our_point_to_plane"] > 0
     assert {c["voxel"] for c in data["cycles"]} == {0.004}
+    assert {c["start"] for c in data["cycles"]} == {"tracking", "warm"}
+    assert all(c["hz"] > 0 and c["perception_ms"] > 0 for c in data["cycles"])
     assert {c["variant"] for c in data["cycles"]} == {
         "point_to_point",
         "lm",
@@ -52,3 +54,16 @@ def test_scale_benchmark_quick(tmp_path: Path) -> None:
     jobs = [(r["job"], r["executor"]) for r in data["rows"]]
     assert len(jobs) == 5 and ("export", "Ray, 2 CPUs") in jobs
     assert all(r["per_second"] > 0 for r in data["rows"])
+
+
+def test_icp_tables_read_the_benchmark_json(tmp_path: Path) -> None:
+    """`benchmarks/icp_tables.py` turns the committed results into the tables of
+    docs/results/speed.md."""
+    files = sorted(str(p) for p in (ROOT / "benchmarks" / "results").glob("icp*.json"))
+    assert len(files) >= 3
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "icp_tables.py"), *files],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.count("| tracking |") == 2 * len(files)
