@@ -171,3 +171,21 @@ def test_wrong_image_size_is_named() -> None:
 def test_config_round_trip() -> None:
     cfg = PerceptionConfig(voxel_size=0.002)
     assert PerceptionConfig.from_dict(cfg.to_dict() | {"future": 1}) == cfg
+
+
+def test_perception_off_the_main_thread_gives_the_same_cloud() -> None:
+    """The web app's handler threads take the serial two-step path; the cloud is the same."""
+    import threading
+
+    cam = d405("848x480")
+    depth = plane_depth(cam, np.array([0.3, 0.1, -0.95]), np.array([0, 0, 0.25]))
+    depth[:, 300:340] = 0.15
+    out: dict[str, Cloud] = {}
+    t = threading.Thread(target=lambda: out.update(c=perceive(depth, cam, PerceptionConfig())))
+    t.start()
+    t.join()
+    main = perceive(depth, cam, PerceptionConfig())
+    assert len(main) > 500 and len(out["c"]) == len(main)
+    np.testing.assert_allclose(out["c"].points, main.points, atol=1e-12)
+    assert main.normals is not None and out["c"].normals is not None
+    np.testing.assert_allclose(out["c"].normals, main.normals, atol=1e-9)

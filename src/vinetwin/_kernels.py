@@ -175,18 +175,26 @@ def window_extremes(depth: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, 
 
 
 # ----------------------------------------------------------------------------- fused perception
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _keep_mask(depth: np.ndarray, dmin: float, dmax: float, edge_threshold: float) -> np.ndarray:
-    """Valid pixels (range) that survive the flying-pixel filter; rows in parallel."""
+@nb.njit(cache=True, nogil=True)
+def _keep_rows(
+    depth: np.ndarray,
+    dmin: float,
+    dmax: float,
+    edge_threshold: float,
+    keep: np.ndarray,
+    v0: int,
+    v1: int,
+) -> None:
+    """Rows v0..v1 of `_keep_mask` into keep."""
     H, W = depth.shape
-    keep = np.zeros((H, W), np.bool_)
-    for v in nb.prange(H):
+    for v in range(v0, v1):
         for u in range(W):
             z = depth[v, u]
             if not (z > dmin and z <= dmax):  # also rejects NaN
                 continue
             ok = True
             if edge_threshold > 0:
+                # drop the far side of a jump to any 4-neighbour
                 for k in range(4):
                     vv = v + (-1 if k == 0 else (1 if k == 1 else 0))
                     uu = u + (-1 if k == 2 else (1 if k == 3 else 0))
@@ -196,6 +204,19 @@ def _keep_mask(depth: np.ndarray, dmin: float, dmax: float, edge_threshold: floa
                             ok = False
                             break
             keep[v, u] = ok
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _keep_mask(
+    depth: np.ndarray, dmin: float, dmax: float, edge_threshold: float, threads: int
+) -> np.ndarray:
+    """Valid pixels (range) that survive the flying-pixel filter; bands of rows in parallel."""
+    H = depth.shape[0]
+    keep = np.zeros(depth.shape, np.bool_)
+    bands = max(1, min(threads, H))
+    size = (H + bands - 1) // bands
+    for b in nb.prange(bands):
+        _keep_rows(depth, dmin, dmax, edge_threshold, keep, b * size, min(H, (b + 1) * size))
     return keep
 
 
@@ -330,7 +351,7 @@ def depth_voxels(
     rows run in parallel, each with its own voxel table, merged in row order (a voxel that
     straddles two bands sums their partial sums: equal to the two-step result to rounding)."""
     H, W = depth.shape
-    keep = _keep_mask(depth, dmin, dmax, edge_threshold)
+    keep = _keep_mask(depth, dmin, dmax, edge_threshold, threads)
     xf = np.empty(W)  # ray factors: x = xf[u] z, y = yf[v] z
     for u in range(W):
         xf[u] = (u - cx) / fx

@@ -27,6 +27,7 @@ tree (exact: the same answer as the tree, `tests/test_cloud.py`). The steps matc
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -176,7 +177,11 @@ def perceive(
 
     cfg = config or PerceptionConfig()
     d = np.ascontiguousarray(camera.check_depth(depth), dtype=np.float32)
-    if cfg.voxel_size > 0:
+    # the parallel kernels run in the main thread only: a numba parallel region launched from
+    # another thread (the web app's handlers) was seen to spin for good after the test suite's
+    # earlier work; elsewhere the serial two-step path gives the same cloud
+    parallel = threading.current_thread() is threading.main_thread()
+    if cfg.voxel_size > 0 and parallel:
         o = np.zeros(3) if grid_origin is None else np.asarray(grid_origin, np.float64).reshape(3)
         # deprojection, flying-pixel filter, normals and the voxel grid in one compiled pass
         pts, nrm = _kernels.depth_voxels(
@@ -189,10 +194,17 @@ def perceive(
             d, camera.fx, camera.fy, camera.cx, camera.cy, max(cfg.min_depth, 1e-6),
             cfg.max_depth, cfg.edge_threshold, 2, True,
         )  # fmt: skip
+        if cfg.voxel_size > 0 and len(pts):
+            o = np.zeros(3) if grid_origin is None else np.asarray(grid_origin, np.float64)
+            o = o.reshape(3)
+            pts, nrm = _kernels.voxel_grid(pts, nrm, float(cfg.voxel_size), o[0], o[1], o[2], True)
     if len(pts) == 0:
         return Cloud(np.empty((0, 3)), np.empty((0, 3)) if normals else None)
     keep = statistical_outliers(
-        pts, int(cfg.sor_neighbors), cfg.sor_std_ratio, cfg.voxel_size or None
+        pts,
+        int(cfg.sor_neighbors),
+        cfg.sor_std_ratio,
+        (cfg.voxel_size or None) if parallel else None,
     )
     pts, nrm = pts[keep], nrm[keep]
     norm = np.linalg.norm(nrm, axis=1)
