@@ -174,7 +174,7 @@ def test_config_round_trip() -> None:
 
 
 def test_perception_off_the_main_thread_gives_the_same_cloud() -> None:
-    """The web app's handler threads take the serial two-step path; the cloud is the same."""
+    """Perception in another thread (the web app's handlers) gives the same cloud."""
     import threading
 
     cam = d405("848x480")

@@ -206,7 +206,7 @@ def _keep_rows(
             keep[v, u] = ok
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def _keep_mask(
     depth: np.ndarray, dmin: float, dmax: float, edge_threshold: float, threads: int
 ) -> np.ndarray:
@@ -328,7 +328,7 @@ def _voxel_rows(
     return m
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def depth_voxels(
     depth: np.ndarray,
     fx: float,
@@ -446,7 +446,7 @@ def _gap(d: int, lo: float, hi: float, cell: float) -> float:
     return (-d - 1) * cell + lo if d < 0 else (d - 1) * cell + hi
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def knn_mean_distance(
     points: np.ndarray, k: int, cell: float, rings: int, threads: int
 ) -> np.ndarray:

@@ -18,7 +18,7 @@ into a pose error. Steps (the paper's, plus a cheap image-space filter):
    a silhouette) is dropped when normals are asked for.
 
 The per-pixel and per-point loops are compiled (`vinetwin._kernels`, numba): steps 1-4 and the
-per-pixel normals run as one pass over the image (bands of rows in parallel, no per-pixel
+per-pixel normals run as one pass over the image (serial; bands of rows merged, no per-pixel
 arrays), and step 5 finds each point's neighbours by a search of grid cells instead of a k-d
 tree (exact: the same answer as the tree, `tests/test_cloud.py`). The steps match Open3D's
 `voxel_down_sample` and `remove_statistical_outlier` (tests/test_cloud.py compares them).
@@ -27,7 +27,6 @@ tree (exact: the same answer as the tree, `tests/test_cloud.py`). The steps matc
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -83,9 +82,10 @@ class Cloud:
 
 
 def _threads() -> int:
-    import numba
-
-    return int(numba.get_num_threads())
+    """Bands of the perception kernels: one. They are compiled serial: with numba's parallel
+    regions in perception, a Franka (franky-sim) sharing the 2 cores fell to a frame every 0.8 s
+    and a web handler thread spun for good, in the test suite."""
+    return 1
 
 
 def voxel_downsample(
@@ -177,11 +177,7 @@ def perceive(
 
     cfg = config or PerceptionConfig()
     d = np.ascontiguousarray(camera.check_depth(depth), dtype=np.float32)
-    # the parallel kernels run in the main thread only: a numba parallel region launched from
-    # another thread (the web app's handlers) was seen to spin for good after the test suite's
-    # earlier work; elsewhere the serial two-step path gives the same cloud
-    parallel = threading.current_thread() is threading.main_thread()
-    if cfg.voxel_size > 0 and parallel:
+    if cfg.voxel_size > 0:
         o = np.zeros(3) if grid_origin is None else np.asarray(grid_origin, np.float64).reshape(3)
         # deprojection, flying-pixel filter, normals and the voxel grid in one compiled pass
         pts, nrm = _kernels.depth_voxels(
@@ -194,17 +190,13 @@ def perceive(
             d, camera.fx, camera.fy, camera.cx, camera.cy, max(cfg.min_depth, 1e-6),
             cfg.max_depth, cfg.edge_threshold, 2, True,
         )  # fmt: skip
-        if cfg.voxel_size > 0 and len(pts):
-            o = np.zeros(3) if grid_origin is None else np.asarray(grid_origin, np.float64)
-            o = o.reshape(3)
-            pts, nrm = _kernels.voxel_grid(pts, nrm, float(cfg.voxel_size), o[0], o[1], o[2], True)
     if len(pts) == 0:
         return Cloud(np.empty((0, 3)), np.empty((0, 3)) if normals else None)
     keep = statistical_outliers(
         pts,
         int(cfg.sor_neighbors),
         cfg.sor_std_ratio,
-        (cfg.voxel_size or None) if parallel else None,
+        cfg.voxel_size or None,
     )
     pts, nrm = pts[keep], nrm[keep]
     norm = np.linalg.norm(nrm, axis=1)
