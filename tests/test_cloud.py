@@ -77,7 +77,7 @@ def test_statistical_outliers_grid_search_equals_the_tree(
 
 @pytest.mark.parametrize("voxel", [0.002, 0.004])
 def test_fused_perception_pass_equals_the_two_steps(voxel: float) -> None:
-    """`depth_voxels` (one pass, bands of rows in parallel) gives the voxels of
+    """`depth_voxels` (one pass, in two bands of rows merged in order) gives the voxels of
     `organised_points` followed by `voxel_grid`, in the same order, with the same points and
     normal sums to rounding, on a noisy scene with canes, a slanted leaf and flying pixels."""
     from vinetwin import _kernels

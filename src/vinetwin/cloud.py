@@ -18,7 +18,7 @@ into a pose error. Steps (the paper's, plus a cheap image-space filter):
    a silhouette) is dropped when normals are asked for.
 
 The per-pixel and per-point loops are compiled (`vinetwin._kernels`, numba): steps 1-4 and the
-per-pixel normals run as one pass over the image (serial; bands of rows merged, no per-pixel
+per-pixel normals run as one serial pass over the image (no per-pixel
 arrays), and step 5 finds each point's neighbours by a search of grid cells instead of a k-d
 tree (exact: the same answer as the tree, `tests/test_cloud.py`). The steps match Open3D's
 `voxel_down_sample` and `remove_statistical_outlier` (tests/test_cloud.py compares them).
@@ -83,8 +83,8 @@ class Cloud:
 
 def _threads() -> int:
     """Bands of the perception kernels: one. They are compiled serial: with numba's parallel
-    regions in perception, a Franka (franky-sim) sharing the 2 cores fell to a frame every 0.8 s
-    and a web handler thread spun for good, in the test suite."""
+    regions in perception, the web app's click handler (a thread) spun for good in the test
+    suite."""
     return 1
 
 
