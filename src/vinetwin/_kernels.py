@@ -31,25 +31,11 @@ def organised_points(
     unnormalised normals from central differences `step` px apart (zero when undefined)."""
     H, W = depth.shape
     keep = np.zeros((H, W), np.bool_)
+    _keep_rows(depth, dmin, dmax, edge_threshold, keep, 0, H)
     n = 0
     for v in range(H):
         for u in range(W):
-            z = depth[v, u]
-            if not (z > dmin and z <= dmax):  # also rejects NaN
-                continue
-            ok = True
-            if edge_threshold > 0:
-                # drop the far side of a jump to any 4-neighbour
-                for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                    vv, uu = v + dv, u + du
-                    if 0 <= vv < H and 0 <= uu < W:
-                        zn = depth[vv, uu]
-                        if zn > dmin and zn <= dmax and z > zn and z - zn > edge_threshold * zn:
-                            ok = False
-                            break
-            if ok:
-                keep[v, u] = True
-                n += 1
+            n += keep[v, u]
     pts = np.empty((n, 3))
     nrm = np.zeros((n, 3))
     i = 0
