@@ -5,8 +5,12 @@ through the D405 sensor model and the perception chain (reference at the pose, c
 known offset from it, each with its own noise), at 4 mm and 2 mm voxels. Starts: warm
 (2 cm / 3 deg from the truth) and identity (5 cm / 10 deg).
 
-Every method runs the same levels: warm, reach 3 cm, 1 cm, then 5 mm on the clouds as given;
-identity, `ICPConfig.coarse_to_fine()` (16 mm and 8 mm voxels, then 12 mm and 5 mm reach). Each
+Every method runs the levels of our variant of its objective (`ICPConfig`'s defaults): warm,
+reach 3 cm (on 4 mm copies of the clouds for point-to-plane, symmetric and GICP; on the clouds
+as given for point-to-point and LM), 1 cm, then 5 mm on the clouds as given; identity,
+`ICPConfig.coarse_to_fine()` (16 mm and 8 mm voxels, then 12 mm and 5 mm reach). Ours pairs
+points by projection into the reference view at the levels of 1 cm reach or less
+(`ICPConfig.association`), the peers by their k-d trees. Each
 peer gets what it would keep between frames of a servo built once: the reference's downsampled
 copies, normals and (small_gicp) k-d tree; the current cloud's downsampling, conversion and (for
 GICP) covariances are timed. Open3D's legacy API rebuilds the target's tree on every call; that is
@@ -114,8 +118,17 @@ def make_cases(
 
 
 # ----------------------------------------------------------------------------- peers
-def _levels(start: str) -> list[tuple[float, float]]:
-    return config_for(start, "point_to_plane").levels()
+#: the objective (our variant) of each peer method, whose levels it runs
+OBJECTIVE = {
+    "point_to_point": "point_to_point", "point_to_plane": "point_to_plane",
+    "symmetric": "symmetric", "ICP": "point_to_point", "PLANE_ICP": "point_to_plane",
+    "GICP": "point_to_plane",
+}  # fmt: skip
+
+
+def _levels(start: str, kind: str) -> list[tuple[float, float]]:
+    """The levels our variant of the same objective runs (`ICPConfig`'s defaults)."""
+    return config_for(start, OBJECTIVE[kind]).levels()
 
 
 def _down(cloud: Cloud, voxel: float) -> tuple[np.ndarray, np.ndarray | None]:
@@ -127,7 +140,7 @@ def open3d_method(kind: str, start: str) -> Callable[[Case], Callable[[], tuple[
     o3d = _lazy.open3d()
     reg = o3d.pipelines.registration
     crit = reg.ICPConvergenceCriteria(1e-6, 1e-6, MAX_ITER)
-    levels = _levels(start)
+    levels = _levels(start, kind)
 
     def prepare(case: Case) -> Callable[[], tuple[Any, int]]:
         targets = []
@@ -167,7 +180,7 @@ def small_gicp_method(
 ) -> Callable[[Case], Callable[[], tuple[Any, int]]]:
     import small_gicp
 
-    levels = _levels(start)
+    levels = _levels(start, kind)
 
     def prepare(case: Case) -> Callable[[], tuple[Any, int]]:
         targets = []

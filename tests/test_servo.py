@@ -209,7 +209,7 @@ def test_error_decays_exponentially_with_perfect_alignment(
     ("jump_t", "jump_r", "by_search"),
     [
         ((0.06, 0.0, 0.0), (0.0, 0.0, 0.2), False),
-        ((0.0, -0.04, 0.03), (0.15, 0.0, 0.0), True),
+        ((0.0, -0.04, 0.03), (0.15, 0.1, 0.0), True),
         ((0.05, 0.03, 0.0), (0.0, 0.2, 0.0), None),
     ],
 )

@@ -218,15 +218,29 @@ def _hash3(ix: np.int64, iy: np.int64, iz: np.int64, mask: np.int64) -> np.int64
 
 @nb.njit(cache=True, nogil=True)
 def _slot(
-    keys: np.ndarray, slot_of: np.ndarray, mask: np.int64, ix: np.int64, iy: np.int64, iz: np.int64
+    skey: np.ndarray, slot_of: np.ndarray, mask: np.int64, ix: np.int64, iy: np.int64, iz: np.int64
 ) -> tuple[Any, Any]:
-    """The table position of a voxel and its slot (-1 if absent: the position is then free)."""
+    """The table position of a voxel and its slot (-1 if absent: the position is then free).
+    The table holds slots only; a slot's key is row `s` of `skey` (compact, in slot order)."""
     h = _hash3(ix, iy, iz, mask)
     while True:
         s = slot_of[h]
-        if s == -1 or (keys[h, 0] == ix and keys[h, 1] == iy and keys[h, 2] == iz):
+        if s == -1 or (skey[s, 0] == ix and skey[s, 1] == iy and skey[s, 2] == iz):
             return h, s
         h = (h + 1) & mask
+
+
+@nb.njit(cache=True, nogil=True)
+def _rehash(skey: np.ndarray, m: int, cap: int) -> tuple[np.ndarray, np.int64]:
+    """A table of `cap` positions (a power of two) for the first m slots of skey."""
+    mask = np.int64(cap - 1)
+    slot_of = np.full(cap, -1, np.int32)
+    for s in range(m):
+        h = _hash3(skey[s, 0], skey[s, 1], skey[s, 2], mask)
+        while slot_of[h] != -1:
+            h = (h + 1) & mask
+        slot_of[h] = s
+    return slot_of, mask
 
 
 @nb.njit(cache=True, nogil=True)
@@ -251,12 +265,10 @@ def _voxel_rows(
     each voxel's key, sums of points and normals, pixel count, in order of first occurrence.
     Returns the number of voxels."""
     H, W = depth.shape
-    cap = 16
-    while cap < 2 * skey.shape[0]:
-        cap *= 2
-    mask = np.int64(cap - 1)
-    keys = np.empty((cap, 3), np.int64)
-    slot_of = np.full(cap, -1, np.int64)
+    # the table starts small and doubles at half full: sized for every kept pixel (the most
+    # voxels there can be) it was megabytes of fresh pages per frame, most never used
+    cap = 4096
+    slot_of, mask = _rehash(skey, 0, cap)
     m = 0
     last_x, last_y, last_z, last_s = np.int64(0), np.int64(0), np.int64(0), -1
     for v in range(v0, v1):
@@ -293,13 +305,16 @@ def _voxel_rows(
             if last_s >= 0 and ix == last_x and iy == last_y and iz == last_z:
                 s = last_s
             else:  # neighbouring pixels mostly share a voxel: the table only on a change
-                h, s = _slot(keys, slot_of, mask, ix, iy, iz)
+                h, s = _slot(skey, slot_of, mask, ix, iy, iz)
                 if s == -1:
                     s = m
                     m += 1
-                    slot_of[h] = s
-                    keys[h, 0], keys[h, 1], keys[h, 2] = ix, iy, iz
                     skey[s, 0], skey[s, 1], skey[s, 2] = ix, iy, iz
+                    if 2 * m > cap:
+                        cap *= 2
+                        slot_of, mask = _rehash(skey, m, cap)
+                    else:
+                        slot_of[h] = s
                     acc[s, 0] = acc[s, 1] = acc[s, 2] = 0.0
                     nacc[s, 0] = nacc[s, 1] = nacc[s, 2] = 0.0
                     cnt[s] = 0
@@ -386,8 +401,8 @@ def depth_voxels(
     while cap < 2 * n:
         cap *= 2
     mask = np.int64(cap - 1)
-    keys = np.empty((cap, 3), np.int64)
-    slot_of = np.full(cap, -1, np.int64)
+    mkey = np.empty((n, 3), np.int64)
+    slot_of = np.full(cap, -1, np.int32)
     macc = np.empty((n, 3))
     mnacc = np.empty((n, 3))
     mcnt = np.empty(n, np.int64)
@@ -395,12 +410,12 @@ def depth_voxels(
     for b in range(bands):
         lo = row_kept[bounds[b]]
         for r in range(lo, lo + found[b]):
-            h, s = _slot(keys, slot_of, mask, skey[r, 0], skey[r, 1], skey[r, 2])
+            h, s = _slot(mkey, slot_of, mask, skey[r, 0], skey[r, 1], skey[r, 2])
             if s == -1:
                 s = m
                 m += 1
                 slot_of[h] = s
-                keys[h, 0], keys[h, 1], keys[h, 2] = skey[r, 0], skey[r, 1], skey[r, 2]
+                mkey[s, 0], mkey[s, 1], mkey[s, 2] = skey[r, 0], skey[r, 1], skey[r, 2]
                 for k in range(3):
                     macc[s, k] = acc[r, k]
                     mnacc[s, k] = nacc[r, k]
@@ -437,9 +452,11 @@ def knn_mean_distance(
     points: np.ndarray, k: int, cell: float, rings: int, threads: int
 ) -> np.ndarray:
     """Mean distance from each point to its k nearest points (itself included, at 0), exact,
-    by a search of grid cells of side `cell` in growing rings: after ring r every point closer
-    than r * cell has been seen, so the search stops once the k-th distance is within that.
-    NaN where `rings` rings were not enough (the caller finishes those with a k-d tree).
+    by a search of grid cells of side `cell`: cell by cell, the points of the 27 cells around it
+    are gathered once and each of its points selects its k nearest among them (`_knn_cell`); a
+    point whose k-th distance might reach past them is searched alone in growing rings (after
+    ring r every point closer than r * cell has been seen). NaN where `rings` rings were not
+    enough (the caller finishes those with a k-d tree).
     `threads`: numba's thread count (passed in: a kernel that asks numba cannot be cached)."""
     n = points.shape[0]
     inv = 1.0 / cell
@@ -475,15 +492,146 @@ def knn_mean_distance(
     for j in range(n):
         sorted_pts[j] = points[order[j]]
     out = np.empty(n)
-    chunks = max(1, min(threads * 4, n // 256))
-    size = (n + chunks - 1) // chunks
+    chunks = max(1, min(threads * 4, nr // 64))
+    size = (nr + chunks - 1) // chunks
     for chunk in nb.prange(chunks):
         best = np.empty(k)  # ascending squared distances, one buffer per chunk
-        for i in range(chunk * size, min(n, (chunk + 1) * size)):
+        cand = np.empty((256, 3))
+        dist = np.empty(256)
+        for r in range(chunk * size, min(nr, (chunk + 1) * size)):
+            cand, dist = _knn_cell(
+                points, r, k, cell, rings, ci, order, starts, runkey, table, mask, sorted_pts,
+                best, cand, dist, out,
+            )  # fmt: skip
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _knn_cell(
+    points: np.ndarray,
+    r: int,
+    k: int,
+    cell: float,
+    rings: int,
+    ci: np.ndarray,
+    order: np.ndarray,
+    starts: np.ndarray,
+    runkey: np.ndarray,
+    table: np.ndarray,
+    mask: np.int64,
+    sorted_pts: np.ndarray,
+    best: np.ndarray,
+    cand: np.ndarray,
+    dist: np.ndarray,
+    out: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`knn_mean_distance` for the points of one cell (run r): the points of the 27 cells
+    around it are gathered once into `cand` (grown as needed, returned) and each point of the
+    cell scans them; a point whose k-th neighbour might lie beyond those cells (farther than
+    one cell plus its distance to its own cell's faces) is searched alone in growing rings
+    (`_knn_one`). Exact either way."""
+    j0 = order[starts[r]]
+    cx_, cy_, cz_ = ci[j0, 0], ci[j0, 1], ci[j0, 2]
+    m = 0
+    for dx in range(-1, 2):
+        for dy in range(-1, 2):
+            for dz in range(-1, 2):
+                key = _cell_key(cx_ + dx, cy_ + dy, cz_ + dz)
+                h = _hash3(cx_ + dx, cy_ + dy, cz_ + dz, mask)
+                rr = -1
+                while table[h] != -1:
+                    if runkey[table[h]] == key:
+                        rr = table[h]
+                        break
+                    h = (h + 1) & mask
+                if rr < 0:
+                    continue
+                add = starts[rr + 1] - starts[rr]
+                if m + add > cand.shape[0]:
+                    grown = np.empty((2 * (m + add), 3))
+                    grown[:m] = cand[:m]
+                    cand = grown
+                for j in range(starts[rr], starts[rr + 1]):
+                    cand[m, 0] = sorted_pts[j, 0]
+                    cand[m, 1] = sorted_pts[j, 1]
+                    cand[m, 2] = sorted_pts[j, 2]
+                    m += 1
+    if dist.shape[0] < m:
+        dist = np.empty(2 * m)
+    tau = np.inf  # squared distance below which a point's k nearest are expected
+    for jj in range(starts[r], starts[r + 1]):
+        i = order[jj]
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        # keep (branch-free) the candidates within tau: when k of them are, the k nearest of
+        # all are among them; otherwise select among all
+        kept = 0
+        for c in range(m):
+            ex = cand[c, 0] - px
+            ey = cand[c, 1] - py
+            ez = cand[c, 2] - pz
+            d2 = ex * ex + ey * ey + ez * ez
+            dist[kept] = d2
+            kept += d2 <= tau
+        if kept < k:
+            for c in range(m):
+                ex = cand[c, 0] - px
+                ey = cand[c, 1] - py
+                ez = cand[c, 2] - pz
+                dist[c] = ex * ex + ey * ey + ez * ez
+            kept = m
+        kth = np.inf
+        if kept >= k:
+            _select(dist, kept, k - 1)  # the k smallest first, the k-th at k - 1
+            kth = dist[k - 1]
+            tau = 1.5 * kth  # the next point of the cell: about as dense around
+        inner = min(
+            px - cx_ * cell, (cx_ + 1) * cell - px,
+            py - cy_ * cell, (cy_ + 1) * cell - py,
+            pz - cz_ * cell, (cz_ + 1) * cell - pz,
+        )  # fmt: skip
+        reach = cell + inner  # every point not gathered lies farther than this
+        if kth <= reach * reach:
+            acc = 0.0
+            for a in range(k):
+                acc += math.sqrt(dist[a])
+            out[i] = acc / k
+        else:
             _knn_one(
                 points, i, k, cell, rings, ci, starts, runkey, table, mask, sorted_pts, best, out
             )
-    return out
+    return cand, dist
+
+
+@nb.njit(cache=True, nogil=True)
+def _select(a: np.ndarray, m: int, nth: int) -> None:
+    """Reorders a[:m] in place so that a[nth] is the value a sort would put there, with no
+    larger value before it and no smaller one after it (quickselect, median of three)."""
+    lo, hi = 0, m - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[lo]:
+            a[hi], a[lo] = a[lo], a[hi]
+        if a[hi] < a[mid]:
+            a[hi], a[mid] = a[mid], a[hi]
+        pivot = a[mid]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if nth <= j:
+            hi = j
+        elif nth >= i:
+            lo = i
+        else:
+            return
 
 
 @nb.njit(cache=True, nogil=True)

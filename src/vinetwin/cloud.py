@@ -20,7 +20,10 @@ into a pose error. Steps (the paper's, plus a cheap image-space filter):
 The per-pixel and per-point loops are compiled (`vinetwin._kernels`, numba): steps 1-4 and the
 per-pixel normals run as one serial pass over the image (no per-pixel
 arrays), and step 5 finds each point's neighbours by a search of grid cells instead of a k-d
-tree (exact: the same answer as the tree, `tests/test_cloud.py`). The steps match Open3D's
+tree: the points of the 27 cells around a cell are gathered once for all its points, and each
+point's k nearest are selected among them (exact: the same answer as the tree,
+`tests/test_cloud.py`; a point whose k-th neighbour may lie farther is searched alone in
+growing rings). The steps match Open3D's
 `voxel_down_sample` and `remove_statistical_outlier` (tests/test_cloud.py compares them).
 """
 

@@ -1,8 +1,10 @@
-"""Compiled ICP (numba): the reference's k-d tree and one whole registration level.
+"""Compiled ICP (numba): the reference's search structures and one whole registration level.
 
 The reference never changes during a servo, so its k-d tree (flat arrays, median splits, leaves
 of 8 points) is built once; a query gives the exact closest reference point within the
-correspondence distance. A level runs entirely in compiled code: association, the variant's linear system,
+correspondence distance. The reference is also a view from a known camera: `ProjectiveIndex`
+bins its points by their pixel, and projective association pairs a current point with the
+closest reference point in the cells around its own projection (no tree, O(1) per point). A level runs entirely in compiled code: association, the variant's linear system,
 the 6x6 solve (or the 3x3 SVD of point-to-point) and the convergence test, so a frame costs one
 Python call per level.
 
@@ -150,6 +152,115 @@ def _nearest(
     return best, best_d2
 
 
+class ProjectiveIndex:
+    """The reference points binned by where they project in the reference camera's image, for
+    projective association: a current point, placed in the reference camera frame, is projected
+    into that image and paired with the closest reference point in the cells around its pixel
+    (`window` cells each side) within the correspondence distance. O(1) per point, no tree.
+
+    Not the exact closest point: a partner farther sideways than the window reaches is not
+    found (the window is sized by `cell`, the reference's point spacing, so at the final level,
+    whose pairs are a few millimetres long, nearly all are); along the ray nothing is missed.
+    `points` must be the tree's points (the indices are the tree's)."""
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        width: int,
+        height: int,
+        spacing: float,
+        window: int = 1,
+    ) -> None:
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        z = pts[:, 2][pts[:, 2] > 0]
+        zref = float(np.median(z)) if len(z) else 1.0
+        # one cell: the point spacing at the reference's median depth, in pixels
+        self.scale = max(1.0, spacing * fx / zref)
+        wc = math.ceil(width / self.scale) + 1
+        hc = math.ceil(height / self.scale) + 1
+        self.params = np.array([fx, fy, cx, cy, 1.0 / self.scale, wc, hc, window], np.float64)
+        self.start, self.items = _bin_points(pts, self.params)
+        self.cell_points = np.ascontiguousarray(pts[self.items])
+
+    @property
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """What the kernels take: (cell start, items, points in cell order, params)."""
+        return (self.start, self.items, self.cell_points, self.params)
+
+
+#: What the kernels take instead of a `ProjectiveIndex` for tree association.
+NO_PROJECTIVE = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _cell_of(p: np.ndarray, prm: np.ndarray) -> tuple[int, int]:
+    """The image cell (column, row) a camera-frame point projects to; (-1, -1) behind it."""
+    if p[2] <= 0.0:
+        return -1, -1
+    u = (prm[0] * p[0] / p[2] + prm[2]) * prm[4]
+    v = (prm[1] * p[1] / p[2] + prm[3]) * prm[4]
+    return math.floor(u), math.floor(v)
+
+
+@nb.njit(cache=True, nogil=True)
+def _bin_points(pts: np.ndarray, prm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CSR of the points per image cell (points outside the image go to its border cells)."""
+    wc, hc = int(prm[5]), int(prm[6])
+    n = pts.shape[0]
+    cell = np.full(n, -1, np.int64)
+    count = np.zeros(wc * hc + 1, np.int64)
+    for i in range(n):
+        if pts[i, 2] <= 0.0:
+            continue
+        cu, cv = _cell_of(pts[i], prm)
+        cu = min(max(cu, 0), wc - 1)
+        cv = min(max(cv, 0), hc - 1)
+        cell[i] = cv * wc + cu
+        count[cell[i] + 1] += 1
+    for c in range(wc * hc):
+        count[c + 1] += count[c]
+    fill = count[:-1].copy()
+    items = np.empty(count[wc * hc], np.int64)
+    for i in range(n):
+        if cell[i] >= 0:
+            items[fill[cell[i]]] = i
+            fill[cell[i]] += 1
+    return count, items
+
+
+@nb.njit(cache=True, nogil=True)
+def _nearest_projective(
+    q: np.ndarray, pts: np.ndarray, proj: Any, dmax: float
+) -> tuple[int, float]:
+    """The closest reference point within dmax among those binned in the window of cells
+    around q's projection; (-1, inf) when none. The points are stored in cell order, so each
+    row of the window is one contiguous run."""
+    start, items, cpts, prm = proj
+    wc, hc, w = int(prm[5]), int(prm[6]), int(prm[7])
+    cu, cv = _cell_of(q, prm)
+    if q[2] <= 0.0 or cu < -w or cv < -w or cu >= wc + w or cv >= hc + w:
+        return -1, np.inf
+    best = -1
+    best_d2 = dmax * dmax
+    c0, c1 = max(cu - w, 0), min(cu + w + 1, wc)
+    for r in range(max(cv - w, 0), min(cv + w + 1, hc)):
+        for j in range(start[r * wc + c0], start[r * wc + c1]):
+            dx = cpts[j, 0] - q[0]
+            dy = cpts[j, 1] - q[1]
+            dz = cpts[j, 2] - q[2]
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 <= best_d2:
+                best_d2 = d2
+                best = j
+    if best < 0:
+        return -1, np.inf
+    return items[best], best_d2
+
+
 @nb.njit(cache=True, nogil=True)
 def _associate_range(
     src: np.ndarray,
@@ -161,13 +272,20 @@ def _associate_range(
     q: np.ndarray,
     idx: np.ndarray,
     d2: np.ndarray,
+    proj: Any,
 ) -> None:
+    """Points i0..i1: transformed by T, then paired by the tree, or by projection when `proj`
+    is a `ProjectiveIndex`'s arrays (empty params: the tree)."""
     stack = np.empty(128, np.int64)
     bound = np.empty(128)
+    projective = proj[3].shape[0] > 0
     for i in range(i0, i1):
         for a in range(3):
             q[i, a] = T[a, 0] * src[i, 0] + T[a, 1] * src[i, 1] + T[a, 2] * src[i, 2] + T[a, 3]
-        idx[i], d2[i] = _nearest(q[i], tree, dmax, stack, bound)
+        if projective:
+            idx[i], d2[i] = _nearest_projective(q[i], tree[0], proj, dmax)
+        else:
+            idx[i], d2[i] = _nearest(q[i], tree, dmax, stack, bound)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -196,8 +314,9 @@ def associate(
     Returns (transformed points, tree-order reference index or -1, squared distance or inf).
     Split in one chunk per thread above 256 points."""
     n, q, idx, d2, chunks, size = _buffers(src, threads)
+    proj = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
     for c in nb.prange(chunks):
-        _associate_range(src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2)
+        _associate_range(src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2, proj)
     return q, idx, d2
 
 
@@ -441,9 +560,12 @@ def register_level(
     huber: float,
     threads: int,
     accelerate: bool,
+    proj: Any,
 ) -> tuple[np.ndarray, int, int, int, float]:
     """One level of ICP from T0. Returns (T, status, iterations, pairs, rmse of the last
-    association). `tree` is `NNTree.arrays`; `nrm` and `use` are in its point order."""
+    association). `tree` is `NNTree.arrays`; `nrm` and `use` are in its point order. `proj`:
+    a `ProjectiveIndex`'s arrays over the same points for projective association, or
+    `NO_PROJECTIVE` for the tree's exact closest points."""
     pts = tree[0]
     T = T0.copy()
     n, q, idx, d2, chunks, size = _buffers(src, threads)
@@ -462,7 +584,7 @@ def register_level(
     rmse = np.nan
     for it in range(1, max_iter + 1):
         for c in nb.prange(chunks):
-            _associate_range(src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2)
+            _associate_range(src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2, proj)
         for i in range(idx.shape[0]):
             if idx[i] >= 0 and not use[idx[i]]:
                 idx[i] = -1
@@ -533,6 +655,43 @@ def register_level(
                 return T, CONVERGED, it, npairs, rmse
         hist[it % 4] = T
     return T, ITERATION_LIMIT, it, npairs, rmse
+
+
+@nb.njit(cache=True, nogil=True)
+def plane_hessian(q: np.ndarray, nrm: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """J^T J of the point-to-plane residuals of the pairs (q[i], normal nrm[idx[i]]), about the
+    centre of q, the rotation columns scaled by the cloud's RMS radius (so both halves are in
+    metres): its eigenvalues say which motions the pairs constrain."""
+    n = q.shape[0]
+    c = np.zeros(3)
+    for i in range(n):
+        for a in range(3):
+            c[a] += q[i, a]
+    c /= max(n, 1)
+    ss = 0.0
+    for i in range(n):
+        for a in range(3):
+            ss += (q[i, a] - c[a]) ** 2
+    scale = math.sqrt(ss / max(n, 1))
+    if scale == 0.0:
+        scale = 1.0
+    A = np.zeros((6, 6))
+    J = np.empty(6)
+    for i in range(n):
+        j = idx[i]
+        n0, n1, n2 = nrm[j, 0], nrm[j, 1], nrm[j, 2]
+        p0, p1, p2 = q[i, 0] - c[0], q[i, 1] - c[1], q[i, 2] - c[2]
+        J[0], J[1], J[2] = n0, n1, n2
+        J[3] = (p1 * n2 - p2 * n1) / scale
+        J[4] = (p2 * n0 - p0 * n2) / scale
+        J[5] = (p0 * n1 - p1 * n0) / scale
+        for a in range(6):
+            for b in range(a, 6):
+                A[a, b] += J[a] * J[b]
+    for a in range(6):
+        for b in range(a):
+            A[a, b] = A[b, a]
+    return A
 
 
 @nb.njit(cache=True, nogil=True)

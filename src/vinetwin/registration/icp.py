@@ -8,12 +8,16 @@
   (Rusinkiewicz 2019).
 
 The reference never changes during a servo: `ICP(reference_cloud, config)` builds its
-k-d trees (one per voxel size of its levels) once; `align(current_cloud, T_init)` runs per frame, each
-level in one compiled call (`vinetwin.registration._kernels`). A registration runs through levels,
-coarse to fine: each level is (voxel size, maximum correspondence distance). The default shrinks
-the distance at full resolution (3 cm, 1 cm, then `max_correspondence_distance`): a wide first
-reach pulls a warm start in, a tight last one keeps the partial overlap of two views (canes
-entering or leaving the image) from biasing the result. `ICPConfig.coarse_to_fine()` adds
+k-d trees (one per voxel size of its levels) and, for projective association, the reference
+points binned by their pixel in the reference camera's image, once; `align(current_cloud,
+T_init)` runs per frame, each level in one compiled call (`vinetwin.registration._kernels`). A
+registration runs through levels, coarse to fine: each level is (voxel size, maximum
+correspondence distance). The default (`SCHEDULES`) shrinks the distance: 3 cm (on 4 mm copies
+of the clouds for point-to-plane and symmetric), 1 cm, then `max_correspondence_distance` on the
+clouds as given: a wide first reach pulls a warm start in, a tight last one keeps the partial
+overlap of two views (canes entering or leaving the image) from biasing the result. The levels
+of 1 cm reach or less pair points by projection into the reference view
+(`ICPConfig.association`), the wider one by the exact tree. `ICPConfig.coarse_to_fine()` adds
 downsampled levels for starts far from the goal.
 
 Failures come back as a result with `converged=False` and a `reason`, never as an exception from
@@ -41,6 +45,15 @@ NDF = npt.NDArray[np.float64]
 
 #: Default edge-of-view rejection reach per variant (m); absent: none.
 EDGE_REACH = {"point_to_plane": 0.003, "point_to_point": 0.01, "lm": 0.01}
+#: Default levels before the final one per variant (`ICPConfig.schedule`).
+SCHEDULES: dict[str, tuple[tuple[float, float], ...]] = {
+    "point_to_plane": ((0.004, 0.03), (0.0, 0.01)),
+    "symmetric": ((0.004, 0.03), (0.0, 0.01)),
+    "point_to_point": ((0.0, 0.03), (0.0, 0.01)),
+    "lm": ((0.0, 0.03), (0.0, 0.01)),
+}
+#: How ICP levels pair points (`ICPConfig.association`).
+ASSOCIATIONS = ("tree", "projective")
 #: Variants whose edge rejection also applies at the final level (the others: coarse levels only).
 EDGE_FINAL = frozenset({"point_to_plane"})
 
@@ -59,9 +72,13 @@ class ICPConfig:
     """Convergence when an update moves less than this (m)..."""
     tolerance_rotation: float = 1e-5
     """...and turns less than this (rad)."""
-    schedule: tuple[tuple[float, float], ...] = ((0.0, 0.03), (0.0, 0.01))
+    schedule: tuple[tuple[float, float], ...] | None = None
     """Levels run before the final one, coarse to fine: (voxel size m, correspondence distance
-    m). Voxel 0 uses the clouds as given. The final level is (0, max_correspondence_distance)."""
+    m). Voxel 0 uses the clouds as given. The final level is (0, max_correspondence_distance).
+    None: the variant's default, `SCHEDULES` (a 3 cm reach then 1 cm; the 3 cm level on 4 mm
+    copies of the clouds for point-to-plane and symmetric, whose answer the finer levels then
+    settle: on 2 mm clouds it halves their time at equal accuracy, benchmarks/icp.py;
+    point-to-point and LM, which creep along the canes, keep the clouds as given)."""
     accelerate: bool = True
     """Point-to-point and LM: while successive updates point the same way, take up to 16 times
     the update, undone if the energy rises (after Besl & McKay's accelerated ICP)."""
@@ -107,6 +124,21 @@ class ICPConfig:
     point-to-plane from 2 cm / 3 deg: 184 mm off, fitness 0.11). 0: no check."""
     huber_delta: float = 0.0
     """LM only: Huber kernel width (m); 0 disables the robust kernel."""
+    association: str = "projective"
+    """How a level pairs points: "tree", the exact closest reference point (k-d tree), or
+    "projective", the closest among the reference points that project within
+    `projective_window` cells of the current point's pixel in the reference camera's image
+    (`_kernels.ProjectiveIndex`; a cell is the reference's point spacing). Projective
+    association needs the reference's camera given to ICP (without it: the tree) and applies to
+    the levels whose reach is at most `projective_reach`; wider levels use the tree (their
+    partners lie far sideways: projective association there lost 1-3 of 8-10 warm starts that
+    the tree brought in, on three vines). Measured against the tree on 2 mm clouds of the
+    dense and a hydroshoot vine: 0.8-1.0x the time at equal or smaller median error; the
+    fitness, overlap and coverage of a result are always counted with the tree (exact)."""
+    projective_reach: float = 0.01
+    """The widest level (correspondence distance, m) that projective association serves."""
+    projective_window: int = 1
+    """Projective association: cells searched on each side of the projected pixel."""
     degeneracy_ratio: float = 1e-3
     """A cloud whose weakest constrained motion is this much weaker than its strongest fails as
     degenerate (smallest / largest eigenvalue of the scaled point-to-plane Hessian)."""
@@ -116,9 +148,14 @@ class ICPConfig:
             raise InputError(
                 f"unknown ICP variant '{self.variant}'; choose one of: {', '.join(ICP_VARIANTS)}"
             )
+        if self.association not in ASSOCIATIONS:
+            raise InputError(
+                f"unknown association '{self.association}'; choose one of: "
+                f"{', '.join(ASSOCIATIONS)}"
+            )
         if self.max_correspondence_distance <= 0 or self.max_iterations <= 0:
             raise InputError("max_correspondence_distance and max_iterations must be positive")
-        for level in self.schedule:
+        for level in self.levels()[:-1]:
             if len(level) != 2 or level[0] < 0 or level[1] <= 0:
                 raise InputError(
                     f"schedule level {level!r} is not (voxel >= 0, correspondence distance > 0)"
@@ -136,7 +173,8 @@ class ICPConfig:
 
     def levels(self) -> list[tuple[float, float]]:
         """All levels, the final one included: (voxel size, correspondence distance)."""
-        return [*self.schedule, (0.0, self.max_correspondence_distance)]
+        schedule = SCHEDULES[self.variant] if self.schedule is None else self.schedule
+        return [*schedule, (0.0, self.max_correspondence_distance)]
 
     @classmethod
     def coarse_to_fine(cls, variant: str = "point_to_plane", **overrides: Any) -> ICPConfig:
@@ -195,6 +233,8 @@ class _Level:
     """Reference normals in the tree's point order ((0, 3) when the reference has none)."""
     use: npt.NDArray[np.bool_]
     """False for reference points at the edge of the reference view (tree order)."""
+    proj: tuple[np.ndarray, ...] = K.NO_PROJECTIVE
+    """The level's `ProjectiveIndex` arrays when it pairs by projection."""
 
 
 def view_edge_mask(
@@ -221,6 +261,31 @@ def _threads() -> int:
     import numba
 
     return int(numba.get_num_threads())
+
+
+def _projective_index(
+    points: NDF, camera: CameraModel, voxel: float, cfg: ICPConfig
+) -> tuple[np.ndarray, ...]:
+    """A level's `ProjectiveIndex`, its cells the level's point spacing (its voxel, or for the
+    clouds as given the median distance between neighbouring reference points)."""
+    spacing = voxel
+    if spacing <= 0 and len(points) > 1:
+        from scipy.spatial import KDTree
+
+        d, _ = KDTree(points).query(points, k=2)
+        spacing = float(np.median(d[:, 1]))
+    idx = K.ProjectiveIndex(
+        points, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+        max(spacing, 1e-4), cfg.projective_window,
+    )  # fmt: skip
+    return idx.arrays
+
+
+def _share_hit(idx: Any, n: int) -> float:
+    """The share of n points that the indices `idx` name at least once."""
+    hit = np.zeros(max(n, 1), dtype=bool)
+    hit[idx] = True
+    return float(hit.sum()) / max(n, 1)
 
 
 def _downsample(points: NDF, normals: NDF | None, voxel: float) -> tuple[NDF, NDF | None]:
@@ -295,7 +360,14 @@ class ICP:
                 use = ~view_edge_mask(
                     tree.points, camera, min(dmax, self.config.edge_reach_m()), max_depth
                 )
-            self._levels.append(_Level(voxel, dmax, tree, nrm, use))
+            proj = K.NO_PROJECTIVE
+            if (
+                camera is not None
+                and self.config.association == "projective"
+                and dmax <= self.config.projective_reach + 1e-12
+            ):
+                proj = _projective_index(tree.points, camera, voxel, self.config)
+            self._levels.append(_Level(voxel, dmax, tree, nrm, use, proj))
 
     def align(self, current: Cloud, T_init: Any = None) -> ICPResult:
         """Estimates T_ref_cur from the current cloud, starting at T_init (identity if None)."""
@@ -331,6 +403,7 @@ class ICP:
                     src, src_n, t.arrays, lv.normals, lv.use, T, lv.dmax, code,
                     cfg.max_iterations, tol_t, tol_r,
                     cfg.min_correspondences, cfg.huber_delta, _threads(), cfg.accelerate,
+                    lv.proj,
                 )  # fmt: skip
             except np.linalg.LinAlgError as exc:  # a safety net: the kernels test what they solve
                 return ICPResult(T, False, iterations=total, reason=f"numerical failure: {exc}")
@@ -410,10 +483,10 @@ class ICP:
     def _coverage(self, src: NDF, T: NDF, idx: Any, n_ref: int, dmax: float) -> float:
         """The share of the reference's own points paired with some current point."""
         if self._coverage_tree is None:
-            return len(np.unique(idx)) / max(n_ref, 1)
+            return _share_hit(idx, n_ref)
         c = self._coverage_tree
         _, cidx, _ = K.associate(src, T, c.arrays, dmax, _threads())
-        return len(np.unique(cidx[cidx >= 0])) / max(len(c.points), 1)
+        return _share_hit(cidx[cidx >= 0], len(c.points))
 
     def _limit_cycle(self, src: tuple[NDF, NDF], lv: Any, T: NDF, code: int) -> str:
         """The final level stopped at its iteration limit: follows it three more iterations.
@@ -426,6 +499,7 @@ class ICP:
             nxt, _st, _it, _p, _r = K.register_level(
                 src[0], src[1], lv.tree.arrays, lv.normals, lv.use, states[-1], lv.dmax, code,
                 1, 0.0, 0.0, cfg.min_correspondences, cfg.huber_delta, _threads(), False,
+                lv.proj,
             )  # fmt: skip
             states.append(nxt)
         spread_t = spread_r = 0.0
@@ -447,12 +521,8 @@ class ICP:
         lv = self._levels[-1]
         if len(lv.normals) == 0 or len(q) < cfg.min_correspondences:
             return ""
-        n = lv.normals[idx]
-        c = q.mean(0)
-        scale = float(np.sqrt(((q - c) ** 2).sum(1).mean())) or 1.0
         # point-to-plane Hessian about the cloud centre, rotations scaled to metres
-        J = np.hstack([n, np.cross(q - c, n) / scale])
-        ev = np.linalg.eigvalsh(J.T @ J)
+        ev = np.linalg.eigvalsh(K.plane_hessian(q, lv.normals, np.ascontiguousarray(idx)))
         if ev[0] < cfg.degeneracy_ratio * ev[-1]:
             return (
                 f"degenerate geometry: the cloud constrains a motion {ev[0] / ev[-1]:.1e} times less than the "

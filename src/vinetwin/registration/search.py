@@ -85,7 +85,7 @@ class WideSearch:
             reference,
             ICPConfig(
                 variant=self.variant,
-                schedule=tuple(lv for lv in fine.schedule if lv[0] == 0.0),
+                schedule=tuple(lv for lv in fine.levels()[:-1] if lv[0] == 0.0),
                 max_correspondence_distance=fine.max_correspondence_distance,
             ),
             camera=camera,

@@ -1,0 +1,157 @@
+"""Benchmark: web click to preview, in headless Chromium.
+
+Serves a copy of a twin (`--twin`, default the bundled sample) with `vinetwin web`'s app, opens
+it in Debian's Chromium (`/usr/bin/chromium`, driven by Playwright; no browser is downloaded) and
+clicks the vine `--clicks` times near the centre of the 3D view (the initial view is centred on
+the first pose's cut point, on its cane). Each click places a cut point and a pruning pose and
+shows what the camera would see from it (Open3D ray casting, the D405 model, the perception
+chain). Measured per click:
+
+- server: from the click event's arrival to the preview sent (`App.last_latency`: the pick, the
+  pose, the render, the D405 model, the perception chain, the point cloud and image messages);
+- browser: from Playwright's mouse click to the page showing the status line the app writes
+  after the preview (the click's trip to the server, the server's work, the preview and the
+  status messages back, and the page updating them).
+
+Prints the medians and the 90th percentiles against the issue's goal (150 ms); `--json` writes
+them. Timings are of this machine, shared with whatever else runs on it.
+
+    .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import socket
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "samples" / "vine_bilateral.twin"
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]  # fmt: skip
+GOAL_MS = 150.0
+STATUS = "last click to preview"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _status_text(page: Any) -> str:
+    """The status line the app writes after each preview ('' before the first)."""
+    text = str(page.evaluate("document.body.innerText"))
+    for line in text.splitlines():
+        if STATUS in line:
+            return line.strip()
+    return ""
+
+
+def run(twin_dir: Path, clicks: int, seed: int) -> dict[str, Any]:
+    from playwright.sync_api import sync_playwright
+
+    from vinetwin.web.app import serve
+
+    port = _free_port()
+    app = serve(twin_dir, port=port)
+    server_ms: list[float] = []
+    browser_ms: list[float] = []
+    missed = 0
+    rng = np.random.default_rng(seed)
+    try:
+        with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
+            ctx = pw.chromium.launch_persistent_context(
+                profile, executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS,
+                viewport={"width": 1200, "height": 800},
+            )  # fmt: skip
+            page = ctx.new_page()
+            page.goto(f"http://127.0.0.1:{port}")
+            page.wait_for_selector("canvas", timeout=60_000)
+            page.wait_for_timeout(5000)  # the scene and the mesh arrive
+            box = page.locator("canvas").first.bounding_box()
+            assert box is not None
+            cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+            for k in range(clicks + 1):  # the first click is a warm-up (compilation)
+                before = _status_text(page)
+                latency_before = app.last_latency
+                dx, dy = rng.uniform(-2, 2, 2) if k else (0.0, 0.0)
+                t0 = time.perf_counter()
+                page.mouse.click(cx + dx, cy + dy)
+                seen = False
+                while time.perf_counter() - t0 < 10.0:
+                    now = _status_text(page)
+                    if now and now != before and app.last_latency is not latency_before:
+                        seen = True
+                        break
+                    page.wait_for_timeout(2)
+                elapsed = time.perf_counter() - t0
+                if not seen:
+                    missed += 1  # the click hit no cane (or the page did not update in 10 s)
+                    continue
+                if k:
+                    browser_ms.append(1000 * elapsed)
+                    server_ms.append(1000 * app.last_latency)
+            ctx.close()
+    finally:
+        app.server.stop()
+
+    def stats(x: list[float]) -> dict[str, float | None]:
+        if not x:
+            return {"median": None, "p90": None}
+        return {"median": statistics.median(x), "p90": float(np.percentile(x, 90))}
+
+    return {
+        "twin": twin_dir.name,
+        "clicks": clicks,
+        "measured": len(browser_ms),
+        "missed": missed,
+        "server_ms": stats(server_ms),
+        "browser_ms": stats(browser_ms),
+        "goal_ms": GOAL_MS,
+        "server_samples_ms": server_ms,
+        "browser_samples_ms": browser_ms,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap.add_argument("--twin", type=Path, default=SAMPLE, help="twin folder (a copy is edited)")
+    ap.add_argument("--clicks", type=int, default=15, help="timed clicks (after one warm-up)")
+    ap.add_argument("--seed", type=int, default=0, help="jitter of the click positions")
+    ap.add_argument("--json", type=Path, help="write the figures here")
+    args = ap.parse_args()
+    if not CHROMIUM.exists():
+        sys.exit(f"{CHROMIUM} is missing: scripts/setup.sh installs Debian's chromium")
+    with tempfile.TemporaryDirectory() as tmp:
+        twin_dir = Path(tmp) / args.twin.name
+        shutil.copytree(args.twin, twin_dir)
+        out = run(twin_dir, args.clicks, args.seed)
+    print(f"web click to preview, twin {out['twin']}, {out['measured']} clicks measured "
+          f"({out['missed']} missed the vine), goal {GOAL_MS:.0f} ms")  # fmt: skip
+    print(f"{'':10} {'median ms':>10} {'p90 ms':>8}")
+    for k in ("server", "browser"):
+        s = out[f"{k}_ms"]
+        med = "-" if s["median"] is None else f"{s['median']:.0f}"
+        p90 = "-" if s["p90"] is None else f"{s['p90']:.0f}"
+        print(f"{k:10} {med:>10} {p90:>8}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(out, indent=1))
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
