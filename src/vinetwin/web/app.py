@@ -12,6 +12,7 @@ log, and the server keeps running.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -30,12 +31,19 @@ from vinetwin.web.session import AuthoringSession
 log = logging.getLogger("vinetwin.web")
 
 
-def _depth_rgb(depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
+@functools.cache
+def _turbo() -> np.ndarray:
+    """The turbo colour map as a 256-entry uint8 table."""
     import matplotlib
 
+    return (matplotlib.colormaps["turbo"](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
+
+
+def _depth_rgb(depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Depths coloured from lo (blue) to hi (red); black where there is none."""
     valid = np.isfinite(depth) & (depth > 0)
-    x = np.clip((depth - lo) / max(hi - lo, 1e-9), 0, 1)
-    rgb = (matplotlib.colormaps["turbo"](x)[..., :3] * 255).astype(np.uint8)
+    x = np.clip((np.where(valid, depth, lo) - lo) * (255 / max(hi - lo, 1e-9)), 0, 255)
+    rgb = _turbo()[x.astype(np.uint8)]
     rgb[~valid] = 0
     return rgb
 
@@ -242,12 +250,16 @@ class App:
             t0 = time.perf_counter()
             with self.lock:
                 try:
-                    hit = self.session.click(event.ray_origin, event.ray_direction)
+                    # saved right after the preview is on its way, not before
+                    hit = self.session.click(event.ray_origin, event.ray_direction, save=False)
                 except VinetwinError as exc:
                     self.session.problem = f"cannot place a cut point there: {exc}"
                     hit = None
                 if hit is not None:
-                    self._show_preview(hit[1].id)
+                    try:
+                        self._show_preview(hit[1].id)
+                    finally:
+                        self.session.save_if_auto()
                     self.last_latency = time.perf_counter() - t0
                     log.info(
                         "cut point %s, pose %s in %.0f ms",
@@ -355,7 +367,8 @@ class App:
         d = pv.depth
         valid = np.isfinite(d) & (d > 0)
         if valid.any():
-            self.image.image = _depth_rgb(d, float(d[valid].min()), float(d[valid].max()))[::2, ::2]
+            lo, hi = float(d[valid].min()), float(d[valid].max())
+            self.image.image = _depth_rgb(d[::2, ::2], lo, hi)  # colour only what is shown
 
     def _export(self) -> None:
         from vinetwin.render.export import export_references

@@ -111,11 +111,18 @@ class AuthoringSession:
         return twin
 
     def _done(self) -> None:
-        if self.autosave:
-            self.save()
+        self.save_if_auto()
 
-    def click(self, origin: Any, direction: Any) -> tuple[CutPoint, PruningPose] | None:
-        """A click on the mesh: a cut point at the hit and its default pruning pose."""
+    def save_if_auto(self) -> bool:
+        """Saves when the session autosaves (True when saved)."""
+        return self.save() if self.autosave else False
+
+    def click(
+        self, origin: Any, direction: Any, save: bool = True
+    ) -> tuple[CutPoint, PruningPose] | None:
+        """A click on the mesh: a cut point at the hit and its default pruning pose. `save`:
+        autosave now (False: the caller calls `save_if_auto` itself, the web app after it has
+        sent the preview)."""
         point = self.pick(origin, direction)
         if point is None:
             return None
@@ -124,7 +131,8 @@ class AuthoringSession:
         cut = twin.add_cut_point(point, axis, source="click")
         pose = twin.add_pose(cut.id)
         self.selected = pose.id
-        self._done()
+        if save:
+            self._done()
         return cut, pose
 
     def set_approach(self, pose_id: str, approach: Approach) -> PruningPose:
