@@ -160,6 +160,133 @@ def window_extremes(depth: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, 
     return near, far, holes
 
 
+# ----------------------------------------------------------------------------- D405 model
+@nb.njit(cache=True, nogil=True)
+def d405_edges(
+    depth: np.ndarray, w: int, jump: np.float32
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The silhouette pixels of the D405 model, in row-major order: those whose (2w+1)^2
+    window (clipped at the border) holds a surface and either an invalid pixel or a depth
+    range above `jump` times its nearest depth. Returns their rows, columns, and the window's
+    nearest and farthest depths (float32, as `window_extremes` gives them)."""
+    H, W = depth.shape
+    rnear = np.empty((H, W), np.float32)
+    rfar = np.empty((H, W), np.float32)
+    rhole = np.empty((H, W), np.bool_)
+    for v in range(H):  # separable: the rows' extremes first
+        for u in range(W):
+            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
+            for uu in range(max(0, u - w), min(W, u + w + 1)):
+                z = depth[v, uu]
+                if z > 0:
+                    if z < lo:
+                        lo = z
+                    if z > hi:
+                        hi = z
+                else:
+                    hole = True
+            rnear[v, u], rfar[v, u], rhole[v, u] = lo, hi, hole
+    ev = np.empty(H * W, np.int64)
+    eu = np.empty(H * W, np.int64)
+    nv = np.empty(H * W, np.float32)
+    fv = np.empty(H * W, np.float32)
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
+            for vv in range(max(0, v - w), min(H, v + w + 1)):
+                if rnear[vv, u] < lo:
+                    lo = rnear[vv, u]
+                if rfar[vv, u] > hi:
+                    hi = rfar[vv, u]
+                hole = hole or rhole[vv, u]
+            if lo < np.inf and (hole or np.float32(hi - lo) > np.float32(jump * lo)):
+                ev[n], eu[n], nv[n], fv[n] = v, u, lo, hi
+                n += 1
+    return ev[:n].copy(), eu[:n].copy(), nv[:n].copy(), fv[:n].copy()
+
+
+@nb.njit(cache=True, nogil=True)
+def d405_silhouettes(
+    depth: np.ndarray,
+    ev: np.ndarray,
+    eu: np.ndarray,
+    nv: np.ndarray,
+    fv: np.ndarray,
+    u1: np.ndarray,
+    u2: np.ndarray,
+    u3: np.ndarray,
+    fatten_above: np.float32,
+    p_fatten: np.float32,
+    p_invalid: np.float32,
+    p_smear: np.float32,
+) -> None:
+    """Step 1 of the D405 model on the silhouette pixels of `d405_edges`, in place, with one
+    uniform draw of each of u1, u2, u3 per pixel: foreground fattening (a background or empty
+    pixel beside a near surface takes its depth, u1 < p_fatten), else invalid (u2 < p_invalid),
+    else a smear between the near and the far side (u2 < p_smear, a cumulative threshold)."""
+    for k in range(ev.shape[0]):
+        v, u = ev[k], eu[k]
+        dv, near, far = depth[v, u], nv[k], fv[k]
+        on = dv > 0
+        if ((not on) or dv > near * fatten_above) and u1[k] < p_fatten:
+            depth[v, u] = near
+        elif u2[k] < p_invalid:
+            depth[v, u] = np.float32(0.0)
+        elif on and u2[k] < p_smear:
+            hi = far if far > 0 else near
+            depth[v, u] = near + u3[k] * (hi - near)
+
+
+@nb.njit(cache=True, nogil=True)
+def count_valid(depth: np.ndarray) -> int:
+    """Pixels with a depth (> 0)."""
+    n = 0
+    for v in range(depth.shape[0]):
+        for u in range(depth.shape[1]):
+            n += depth[v, u] > 0
+    return n
+
+
+@nb.njit(cache=True, nogil=True)
+def d405_axial(
+    depth: np.ndarray,
+    normal: np.ndarray,
+    drop: np.ndarray,
+    scale: float,
+    sub: float,
+    fxb: float,
+    p_drop: float,
+    zmin: float,
+    zmax: float,
+    unit: float,
+) -> None:
+    """Steps 2-5 of the D405 model on the valid pixels in row-major order, in place: depth
+    times `scale`; plus normal[i] * z^2 * sub / fxb (when `normal` is not empty); invalid when
+    drop[i] < p_drop (when `drop` is not empty); invalid outside [zmin, zmax]; rounded to
+    `unit` (when unit > 0). Computed in float64 and stored in the image's float32."""
+    i = 0
+    noise = normal.shape[0] > 0
+    dropping = drop.shape[0] > 0
+    for v in range(depth.shape[0]):
+        for u in range(depth.shape[1]):
+            if not depth[v, u] > 0:
+                continue
+            z = np.float64(depth[v, u])
+            if scale != 1.0:
+                z *= scale
+            if noise:
+                z += normal[i] * (z * z * sub / fxb)
+            if dropping and drop[i] < p_drop:
+                z = 0.0
+            if z < zmin or z > zmax:
+                z = 0.0
+            if unit > 0:
+                z = np.rint(z / unit) * unit
+            depth[v, u] = z
+            i += 1
+
+
 # ----------------------------------------------------------------------------- fused perception
 @nb.njit(cache=True, nogil=True)
 def _keep_rows(

@@ -144,7 +144,11 @@ def statistical_outliers(
         cell = spacing * max(1.0, 0.75 * math.sqrt(neighbors))
         mean_d = _kernels.knn_mean_distance(pts, int(neighbors), cell, 3, _threads())
         todo = np.flatnonzero(np.isnan(mean_d))
-        if len(todo):
+        if 0 < len(todo) <= 32:  # a few isolated points: against every point (no tree to build)
+            for i in todo:
+                d = np.sqrt(((pts - pts[i]) ** 2).sum(axis=1))
+                mean_d[i] = np.partition(d, neighbors - 1)[:neighbors].mean()
+        elif len(todo):
             dist, _ = KDTree(pts).query(pts[todo], k=neighbors)
             mean_d[todo] = dist.mean(axis=1)
     else:

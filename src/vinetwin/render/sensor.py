@@ -90,55 +90,33 @@ def apply_d405_model(
         slice(max(cols[0] - m, 0), cols[-1] + m + 1),
     )
     full = d
-    d = d[box].copy()
-    valid = valid[box]
+    d = np.ascontiguousarray(d[box])  # a copy
+
+    # compiled (vinetwin._kernels); the same numbers as the numpy formulation of each step
+    # (tests/test_render.py keeps it as the reference)
+    from vinetwin import _kernels
 
     if cfg.edge_width > 0 and (cfg.edge_invalid > 0 or cfg.edge_smear > 0 or cfg.edge_fatten > 0):
-        from vinetwin import _kernels
-
-        near, far, holes = _kernels.window_extremes(np.ascontiguousarray(d), int(cfg.edge_width))
-        near_ok = np.isfinite(near)  # some surface within the window
-        big_jump = (far - near) > cfg.edge_jump * np.where(near_ok, near, 1.0)
-        edge = near_ok & (big_jump | holes)
-        # draw random numbers only for silhouette pixels (a small part of the image)
-        ev, eu = np.nonzero(edge)
-        dv, nv, fv = d[ev, eu], near[ev, eu], far[ev, eu]
+        # silhouette pixels, then random numbers drawn for them only (a small part of the image)
+        ev, eu, nv, fv = _kernels.d405_edges(d, int(cfg.edge_width), np.float32(cfg.edge_jump))
         u1 = rng.random(len(ev), dtype=np.float32)
         u2 = rng.random(len(ev), dtype=np.float32)
         u3 = rng.random(len(ev), dtype=np.float32)
-        on = dv > 0
-        # foreground fattening: background (or empty) pixels beside a near surface take its depth
-        fatten = ((~on) | (dv > nv * (1 + cfg.edge_jump))) & (u1 < cfg.edge_fatten)
-        invalid = ~fatten & (u2 < cfg.edge_invalid)
-        smear = (
-            ~fatten
-            & ~invalid
-            & on
-            & (u2 < cfg.edge_invalid + (1 - cfg.edge_invalid) * cfg.edge_smear)
-        )
-        new = dv.copy()
-        new[fatten] = nv[fatten]
-        hi = np.where(fv > 0, fv, nv)
-        new[smear] = nv[smear] + u3[smear] * (hi[smear] - nv[smear])
-        new[invalid] = 0.0
-        out = d.copy()
-        out[ev, eu] = new
-        d = out
-        valid = d > 0
+        _kernels.d405_silhouettes(
+            d, ev, eu, nv, fv, u1, u2, u3, np.float32(1 + cfg.edge_jump),
+            np.float32(cfg.edge_fatten), np.float32(cfg.edge_invalid),
+            np.float32(cfg.edge_invalid + (1 - cfg.edge_invalid) * cfg.edge_smear),
+        )  # fmt: skip
 
-    # the rest touches valid pixels only
-    vv, vu = np.nonzero(valid)
-    z = d[vv, vu].astype(np.float64)
-    if cfg.bias:
-        z *= 1.0 + cfg.bias
-    if cfg.noise:
-        sub = camera.subpixel if cfg.subpixel is None else cfg.subpixel
-        z += rng.standard_normal(len(z)) * (z * z * sub / (camera.fx * camera.baseline))
-    if cfg.dropout > 0:
-        z[rng.random(len(z)) < cfg.dropout] = 0.0
-    z[(z < camera.min_depth) | (z > camera.max_depth)] = 0.0
-    if cfg.quantize:
-        z = np.round(z / camera.depth_unit) * camera.depth_unit
-    d[vv, vu] = z
+    # the rest touches valid pixels only, in row-major order
+    n = _kernels.count_valid(d)
+    sub = camera.subpixel if cfg.subpixel is None else cfg.subpixel
+    normal = rng.standard_normal(n) if cfg.noise else np.zeros(0)
+    drop = rng.random(n) if cfg.dropout > 0 else np.zeros(0)
+    _kernels.d405_axial(
+        d, normal, drop, 1.0 + cfg.bias if cfg.bias else 1.0, float(sub),
+        camera.fx * camera.baseline, float(cfg.dropout), camera.min_depth, camera.max_depth,
+        camera.depth_unit if cfg.quantize else 0.0,
+    )  # fmt: skip
     full[box] = d
     return full
