@@ -39,13 +39,10 @@ from typing import Any
 
 import numpy as np
 
+from vinetwin.web.browser import CHROMIUM, launch
+
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "samples" / "vine_bilateral.twin"
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-]  # fmt: skip
 GOAL_MS = 150.0
 STATUS = "last click to preview"
 
@@ -89,10 +86,7 @@ def run(twin_dir: Path, clicks: int, seed: int) -> dict[str, Any]:
     rng = np.random.default_rng(seed)
     try:
         with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
-            ctx = pw.chromium.launch_persistent_context(
-                profile, executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS,
-                viewport={"width": 1200, "height": 800},
-            )  # fmt: skip
+            ctx = launch(pw, profile)
             page = ctx.new_page()
             page.goto(f"http://127.0.0.1:{port}")
             page.wait_for_selector("canvas", timeout=60_000)

@@ -270,8 +270,9 @@ def _d405_numpy(
     depth: np.ndarray, camera: CameraModel, rng: np.random.Generator, cfg: SensorConfig
 ) -> np.ndarray:
     """The D405 model written with numpy, step by step (the formulation the compiled kernels
-    replaced): the reference they must reproduce exactly."""
-    from vinetwin import _kernels
+    replaced; window extremes from scipy's filters): the reference they must reproduce
+    exactly."""
+    from scipy import ndimage
 
     d = np.array(depth, dtype=np.float32, copy=True)
     d[~np.isfinite(d) | (d < 0)] = 0.0
@@ -284,7 +285,11 @@ def _d405_numpy(
     )
     full = d
     d = d[box].copy()
-    near, far, holes = _kernels.window_extremes(np.ascontiguousarray(d), int(cfg.edge_width))
+    size = 2 * cfg.edge_width + 1  # the window, clipped at the border
+    valid_d = d > 0
+    near = ndimage.minimum_filter(np.where(valid_d, d, np.inf), size, mode="constant", cval=np.inf)
+    far = ndimage.maximum_filter(np.where(valid_d, d, 0), size, mode="constant", cval=0)
+    holes = ndimage.maximum_filter(~valid_d, size, mode="constant", cval=False)
     near_ok = np.isfinite(near)
     big_jump = (far - near) > cfg.edge_jump * np.where(near_ok, near, 1.0)
     ev, eu = np.nonzero(near_ok & (big_jump | holes))

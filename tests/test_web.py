@@ -15,13 +15,8 @@ import pytest
 from vinetwin import frames as fr
 from vinetwin.twin import Twin
 from vinetwin.twin.poses import Approach
+from vinetwin.web.browser import CHROMIUM, launch
 from vinetwin.web.session import AuthoringSession
-
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-]  # fmt: skip
 
 
 @pytest.fixture
@@ -125,10 +120,7 @@ def test_browser_click_creates_a_cut_point(twin_dir: Path, tmp_path: Path) -> No
     try:
         n0 = len(json.loads((twin_dir / "twin.json").read_text())["cut_points"])
         with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
-            ctx = pw.chromium.launch_persistent_context(
-                profile, executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS,
-                viewport={"width": 1200, "height": 800},
-            )  # fmt: skip
+            ctx = launch(pw, profile)
             page = ctx.new_page()
             page.goto(f"http://127.0.0.1:{port}")
             page.wait_for_selector("canvas", timeout=60_000)

@@ -122,44 +122,6 @@ def voxel_grid(
     return out, nout
 
 
-@nb.njit(cache=True, nogil=True)
-def window_extremes(depth: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each pixel, over the (2w+1)^2 window (clipped at the border): the nearest valid depth
-    (inf if none), the farthest depth (0 if none) and whether the window holds an invalid pixel."""
-    H, W = depth.shape
-    near = np.full((H, W), np.inf, np.float32)
-    far = np.zeros((H, W), np.float32)
-    holes = np.zeros((H, W), np.bool_)
-    # separable: rows first, then columns
-    rnear = np.full((H, W), np.inf, np.float32)
-    rfar = np.zeros((H, W), np.float32)
-    rhole = np.zeros((H, W), np.bool_)
-    for v in range(H):
-        for u in range(W):
-            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
-            for uu in range(max(0, u - w), min(W, u + w + 1)):
-                z = depth[v, uu]
-                if z > 0:
-                    if z < lo:
-                        lo = z
-                    if z > hi:
-                        hi = z
-                else:
-                    hole = True
-            rnear[v, u], rfar[v, u], rhole[v, u] = lo, hi, hole
-    for v in range(H):
-        for u in range(W):
-            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
-            for vv in range(max(0, v - w), min(H, v + w + 1)):
-                if rnear[vv, u] < lo:
-                    lo = rnear[vv, u]
-                if rfar[vv, u] > hi:
-                    hi = rfar[vv, u]
-                hole = hole or rhole[vv, u]
-            near[v, u], far[v, u], holes[v, u] = lo, hi, hole
-    return near, far, holes
-
-
 # ----------------------------------------------------------------------------- D405 model
 @nb.njit(cache=True, nogil=True)
 def d405_edges(
@@ -168,7 +130,7 @@ def d405_edges(
     """The silhouette pixels of the D405 model, in row-major order: those whose (2w+1)^2
     window (clipped at the border) holds a surface and either an invalid pixel or a depth
     range above `jump` times its nearest depth. Returns their rows, columns, and the window's
-    nearest and farthest depths (float32, as `window_extremes` gives them)."""
+    nearest and farthest depths (float32)."""
     H, W = depth.shape
     rnear = np.empty((H, W), np.float32)
     rfar = np.empty((H, W), np.float32)
@@ -566,6 +528,20 @@ def _cell_key(ix: np.int64, iy: np.int64, iz: np.int64) -> np.int64:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _run_of(
+    ix: np.int64, iy: np.int64, iz: np.int64, table: np.ndarray, runkey: np.ndarray, mask: np.int64
+) -> int:
+    """The run (of points sorted by cell) of grid cell (ix, iy, iz); -1 when it is empty."""
+    key = _cell_key(ix, iy, iz)
+    h = _hash3(ix, iy, iz, mask)
+    while table[h] != -1:
+        if runkey[table[h]] == key:
+            return int(table[h])
+        h = (h + 1) & mask
+    return -1
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _gap(d: int, lo: float, hi: float, cell: float) -> float:
     """Distance along one axis from a point to the cell `d` cells away (0: its own), given
     the point's distances `lo` and `hi` to its own cell's faces."""
@@ -663,14 +639,7 @@ def _knn_cell(
     for dx in range(-1, 2):
         for dy in range(-1, 2):
             for dz in range(-1, 2):
-                key = _cell_key(cx_ + dx, cy_ + dy, cz_ + dz)
-                h = _hash3(cx_ + dx, cy_ + dy, cz_ + dz, mask)
-                rr = -1
-                while table[h] != -1:
-                    if runkey[table[h]] == key:
-                        rr = table[h]
-                        break
-                    h = (h + 1) & mask
+                rr = _run_of(cx_ + dx, cy_ + dy, cz_ + dz, table, runkey, mask)
                 if rr < 0:
                     continue
                 add = starts[rr + 1] - starts[rr]
@@ -798,14 +767,7 @@ def _knn_one(
                     gz = _gap(dz, lz, hz, cell)
                     if gx * gx + gy * gy + gz * gz > best[k - 1]:
                         continue  # the whole cell is farther than the k-th so far
-                    key = _cell_key(cx_ + dx, cy_ + dy, cz_ + dz)
-                    h = _hash3(cx_ + dx, cy_ + dy, cz_ + dz, mask)
-                    r = -1
-                    while table[h] != -1:
-                        if runkey[table[h]] == key:
-                            r = table[h]
-                            break
-                        h = (h + 1) & mask
+                    r = _run_of(cx_ + dx, cy_ + dy, cz_ + dz, table, runkey, mask)
                     if r < 0:
                         continue
                     for j in range(starts[r], starts[r + 1]):
