@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import ROOT
 
 
@@ -67,3 +69,26 @@ def test_icp_tables_read_the_benchmark_json(tmp_path: Path) -> None:
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.count("| tracking |") == 2 * len(files)
+
+
+def test_web_benchmark_quick(tmp_path: Path) -> None:
+    """`benchmarks/web.py` clicks the sample in headless Chromium and writes each part of the
+    click-to-preview time (figures printed, never asserted)."""
+    from vinetwin.web.browser import CHROMIUM
+
+    if not CHROMIUM.exists():
+        pytest.skip("Debian's chromium is not installed")
+    out = tmp_path / "web.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "web.py"), "--clicks", "2", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads(out.read_text())
+    assert data["measured"] + data["missed"] == 2 and data["measured"] >= 1
+    for part in ("arrive_ms", "server_ms", "browser_ms"):
+        assert data[part]["median"] > 0
+    assert data["browser_ms"]["median"] >= data["server_ms"]["median"]
+    assert "click to preview" in proc.stdout
