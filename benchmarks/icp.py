@@ -27,6 +27,7 @@ two starts: tracking (2 mm / 0.5 deg, a frame's motion at the speed limits: the 
 state) and warm (2 cm / 3 deg, after a disturbance).
 
     .venv/bin/python benchmarks/icp.py [--twin TWIN] [--trials 4] [--quick] [--json out.json]
+        [--association tree]
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ import numpy as np
 from vinetwin import _lazy
 from vinetwin import frames as fr
 from vinetwin.cloud import Cloud, perceive, voxel_downsample
-from vinetwin.registration.icp import ICP, ICPConfig
+from vinetwin.registration.icp import ASSOCIATIONS, ICP, ICPConfig
 from vinetwin.render.backends import get_backend
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
 from vinetwin.servo.config import Limits
@@ -73,10 +74,13 @@ MAX_ITER = 40
 TOL = 1e-5
 
 
-def config_for(start: str, variant: str) -> ICPConfig:
+def config_for(start: str, variant: str, association: str | None = None) -> ICPConfig:
+    """Our settings for a start; `association` None: `ICPConfig`'s default."""
     if start == "identity":
-        return ICPConfig.coarse_to_fine(variant, max_iterations=MAX_ITER)
-    return ICPConfig(variant=variant, max_iterations=MAX_ITER)
+        cfg = ICPConfig.coarse_to_fine(variant, max_iterations=MAX_ITER)
+    else:
+        cfg = ICPConfig(variant=variant, max_iterations=MAX_ITER)
+    return cfg if association is None else dataclasses.replace(cfg, association=association)
 
 
 @dataclasses.dataclass
@@ -221,12 +225,12 @@ def small_gicp_method(
 
 
 def ours_method(
-    variant: str, start: str, twin: Twin
+    variant: str, start: str, twin: Twin, association: str | None = None
 ) -> Callable[[Case], Callable[[], tuple[Any, int]]]:
     def prepare(case: Case) -> Callable[[], tuple[Any, int]]:
         icp = ICP(
             case.reference,
-            config_for(start, variant),
+            config_for(start, variant, association),
             camera=twin.camera,
             max_depth=twin.perception.max_depth,
         )
@@ -290,7 +294,12 @@ def add_ratios(rows: list[dict[str, Any]]) -> None:
 
 
 def cycle(
-    twin: Twin, cases: list[Case], repeats: int, voxel: float, start: str
+    twin: Twin,
+    cases: list[Case],
+    repeats: int,
+    voxel: float,
+    start: str,
+    association: str | None = None,
 ) -> list[dict[str, Any]]:
     """Perception + ICP + control per frame (`Servo.step_depth`, the servo's own ICP settings)
     at `voxel`, from the offsets of `cases` (`start`)."""
@@ -302,7 +311,9 @@ def cycle(
         for case in cases:
             servo = Servo(
                 case.reference,
-                icp=ICPConfig(variant=v),
+                icp=ICPConfig(variant=v)
+                if association is None
+                else ICPConfig(variant=v, association=association),
                 camera=twin.camera,
                 perception=per,
                 limits=Limits(max_linear_acceleration=0, max_angular_acceleration=0),
@@ -363,6 +374,11 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="1 trial, 1 repeat, 4 mm only")
     ap.add_argument("--json", type=Path, help="write the figures here")
     ap.add_argument("--twin", type=Path, default=SAMPLE, help="twin folder (default: the sample)")
+    ap.add_argument(
+        "--association", choices=ASSOCIATIONS, default=None,
+        help="our ICP's association (default: ICPConfig's, projective at the fine levels); "
+        "tree: the exact k-d tree at every level, to compare",
+    )  # fmt: skip
     args = ap.parse_args()
     if args.quick:
         args.trials, args.repeats = 1, 1
@@ -377,6 +393,7 @@ def main() -> None:
     results: dict[str, Any] = {
         "twin": twin.name,
         "trials": args.trials,
+        "association": args.association or ICPConfig().association,
         "tables": [],
         "cycles": [],
     }
@@ -386,7 +403,7 @@ def main() -> None:
             npts = int(np.median([len(c.current) for c in cases]))
             methods: dict[str, Callable[[Case], Callable[[], tuple[Any, int]]]] = {}
             for v in VARIANTS:
-                methods[f"vinetwin {v}"] = ours_method(v, start, twin)
+                methods[f"vinetwin {v}"] = ours_method(v, start, twin, args.association)
             for k in ("point_to_point", "point_to_plane", "symmetric"):
                 methods[f"open3d {k}"] = open3d_method(k, start)
             for k in ("ICP", "PLANE_ICP", "GICP"):
@@ -402,9 +419,13 @@ def main() -> None:
                 {"voxel": voxel, "start": start, "cases": len(cases), "points": npts, "rows": rows}
             )
             if start == "warm":
-                results["cycles"] += cycle(twin, cases, args.repeats, voxel, start)
+                results["cycles"] += cycle(
+                    twin, cases, args.repeats, voxel, start, args.association
+                )
         tracking = make_cases(twin, voxel, args.trials, "tracking", rng)
-        results["cycles"] += cycle(twin, tracking, args.repeats, voxel, "tracking")
+        results["cycles"] += cycle(
+            twin, tracking, args.repeats, voxel, "tracking", args.association
+        )
     print("\nservo cycle (perception + ICP + control, Servo.step_depth; starts: tracking "
           f"{CYCLE_STARTS['tracking'][0] * 1000:.0f} mm / {CYCLE_STARTS['tracking'][1]} deg, "
           "warm as above)")  # fmt: skip
