@@ -201,16 +201,6 @@ def d405_silhouettes(
 
 
 @nb.njit(cache=True, nogil=True)
-def count_valid(depth: np.ndarray) -> int:
-    """Pixels with a depth (> 0)."""
-    n = 0
-    for v in range(depth.shape[0]):
-        for u in range(depth.shape[1]):
-            n += depth[v, u] > 0
-    return n
-
-
-@nb.njit(cache=True, nogil=True)
 def d405_axial(
     depth: np.ndarray,
     normal: np.ndarray,

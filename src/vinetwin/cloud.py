@@ -200,10 +200,7 @@ def perceive(
     if len(pts) == 0:
         return Cloud(np.empty((0, 3)), np.empty((0, 3)) if normals else None)
     keep = statistical_outliers(
-        pts,
-        int(cfg.sor_neighbors),
-        cfg.sor_std_ratio,
-        cfg.voxel_size or None,
+        pts, int(cfg.sor_neighbors), cfg.sor_std_ratio, cfg.voxel_size or None
     )
     pts, nrm = pts[keep], nrm[keep]
     norm = np.linalg.norm(nrm, axis=1)

@@ -109,7 +109,7 @@ def apply_d405_model(
         )  # fmt: skip
 
     # the rest touches valid pixels only, in row-major order
-    n = _kernels.count_valid(d)
+    n = int(np.count_nonzero(d > 0))
     sub = camera.subpixel if cfg.subpixel is None else cfg.subpixel
     normal = rng.standard_normal(n) if cfg.noise else np.zeros(0)
     drop = rng.random(n) if cfg.dropout > 0 else np.zeros(0)

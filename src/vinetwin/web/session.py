@@ -110,9 +110,6 @@ class AuthoringSession:
         self._redo.clear()
         return twin
 
-    def _done(self) -> None:
-        self.save_if_auto()
-
     def save_if_auto(self) -> bool:
         """Saves when the session autosaves (True when saved)."""
         return self.save() if self.autosave else False
@@ -132,7 +129,7 @@ class AuthoringSession:
         pose = twin.add_pose(cut.id)
         self.selected = pose.id
         if save:
-            self._done()
+            self.save_if_auto()
         return cut, pose
 
     def set_approach(self, pose_id: str, approach: Approach) -> PruningPose:
@@ -144,13 +141,13 @@ class AuthoringSession:
         pose.approach = approach
         pose.standoff = approach.standoff
         pose.T_vine_camera = pruning_pose(cut.point, cut.cane_axis, approach)
-        self._done()
+        self.save_if_auto()
         return pose
 
     def set_transform(self, pose_id: str, T_vine_camera: Any) -> PruningPose:
         twin = self._edit()
         pose = twin.set_pose(pose_id, T_vine_camera)
-        self._done()
+        self.save_if_auto()
         return pose
 
     def snap(self, pose_id: str) -> PruningPose:
@@ -164,7 +161,7 @@ class AuthoringSession:
 
     def rename(self, pose_id: str, name: str) -> None:
         self._edit().pose(pose_id).name = name
-        self._done()
+        self.save_if_auto()
 
     def set_variant(self, pose_id: str, variant: str) -> None:
         from vinetwin.cloud import ICP_VARIANTS
@@ -173,7 +170,7 @@ class AuthoringSession:
         if variant not in ICP_VARIANTS:
             raise InputError(f"unknown ICP variant '{variant}'")
         self._edit().pose(pose_id).icp_variant = variant
-        self._done()
+        self.save_if_auto()
 
     def delete_pose(self, pose_id: str) -> None:
         twin = self._edit()
@@ -181,7 +178,7 @@ class AuthoringSession:
         if not any(p.cut_point == pose.cut_point for p in twin.poses):
             twin.delete_cut_point(pose.cut_point)  # a clicked cut point without poses goes too
         self.selected = twin.poses[-1].id if twin.poses else ""
-        self._done()
+        self.save_if_auto()
 
     def undo(self) -> bool:
         return self._swap(self._undo, self._redo)
@@ -198,7 +195,7 @@ class AuthoringSession:
         ids = [p.id for p in self.twin.poses]
         if self.selected not in ids:
             self.selected = ids[-1] if ids else ""
-        self._done()
+        self.save_if_auto()
         return True
 
     def save(self) -> bool:
