@@ -37,6 +37,8 @@ from vinetwin.servo.robot import (
     CommandLimits,
     FrankaRobot,
     FrankaTransport,
+    PlannerRefusal,
+    RobotError,
     guard_twist,
 )
 from vinetwin.servo.step import make_servo
@@ -292,6 +294,45 @@ def test_watchdog_stops_the_robot_when_commands_stop() -> None:
     assert not transport.moving
     assert transport.stops[-1] - silent == pytest.approx(LIMITS.watchdog, abs=0.08)
     assert any("watchdog" in what for _, what in robot.events)
+    robot.close()
+
+
+class _RefusingTransport(FakeTransport):
+    """Its planner refuses the sends whose numbers are in `refuse` (1-based), as franky's
+    "Motion planner failed with error code -110" does now and then on franky-sim."""
+
+    def __init__(self, limits: CommandLimits, refuse: set[int]) -> None:
+        super().__init__(limits)
+        self.refuse, self.tries = refuse, 0
+
+    def send_velocity(self, linear, angular, T_flange_point, duration) -> None:  # type: ignore[no-untyped-def]
+        self.tries += 1
+        if self.tries in self.refuse:
+            raise PlannerRefusal("Motion planner failed with error code -110")
+        super().send_velocity(linear, angular, T_flange_point, duration)
+
+
+def test_a_command_the_planner_refuses_once_is_sent_again_twice_stops() -> None:
+    twist = [0.01, 0, 0, 0, 0, 0.05]
+    transport = _RefusingTransport(LIMITS, refuse={2})
+    robot = FrankaRobot(transport, np.eye(4), LIMITS)
+    for _ in range(4):  # the first is ramped to zero (nothing sent before it)
+        robot.command(twist)
+        time.sleep(0.02)
+    assert transport.tries == 4 and len(transport.sends) == 3  # the refused one went again
+    assert sum("planner refused" in what for _, what in robot.events) == 1
+    robot.close()
+
+    transport = _RefusingTransport(LIMITS, refuse={2, 3})
+    robot = FrankaRobot(transport, np.eye(4), LIMITS)
+    for _ in range(2):
+        robot.command(twist)
+        time.sleep(0.02)
+    with pytest.raises(RobotError, match="refused twice"):
+        robot.command(twist)
+    assert len(transport.sends) == 1
+    robot.stop("the loop's finally")
+    assert not transport.moving
     robot.close()
 
 
