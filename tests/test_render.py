@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 from pathlib import Path
@@ -15,7 +16,7 @@ from vinetwin import frames as fr
 from vinetwin.camera import CameraModel, d405
 from vinetwin.errors import BackendUnavailable, InputError, MeshError, TwinError
 from vinetwin.render import reference as refmod
-from vinetwin.render.backends import BACKENDS, get_backend
+from vinetwin.render.backends import BACKENDS, get_backend, resolve_backend
 from vinetwin.render.export import export_references
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
 from vinetwin.twin import Twin
@@ -153,6 +154,7 @@ def test_export_writes_loadable_files_and_resumes(twin_copy: Twin) -> None:
         info = json.loads(meta.read_text())
         n = info["points"]
         assert n > 100 and info["noise_seed"] == refmod.pose_seed(0, pid)
+        assert info["backend"] == resolve_backend(None)  # the one used, never "auto"
         pc = o3d.io.read_point_cloud(str(ply))
         assert len(pc.points) == n and pc.has_normals()
         pc2 = o3d.io.read_point_cloud(str(pcd))
@@ -229,7 +231,7 @@ def test_view_of_nothing_gives_empty_cloud_and_warning(
 def test_unknown_pose_and_backend(twin_copy: Twin) -> None:
     with pytest.raises(TwinError, match="no pruning pose 'p99'"):
         export_references(twin_copy, ["p99"])
-    with pytest.raises(InputError, match="choose one of"):
+    with pytest.raises(InputError, match="choose auto or one of"):
         export_references(twin_copy, backend="vtk")
 
 
@@ -264,6 +266,56 @@ def test_backend_that_cannot_start_says_why(backend: str, env: dict[str, str], n
         [sys.executable, "-c", code], env=environ | env, capture_output=True, text=True, timeout=120
     )
     assert f"UNAVAILABLE {backend}" in out.stdout and needle in out.stdout, out.stderr[-1000:]
+
+
+def test_default_backend_falls_back_to_open3d_where_it_cannot_start(tmp_path: Path) -> None:
+    """None or "auto" gives DEFAULT_BACKEND where it starts, else open3d with a warning that
+    says why; a named backend is never replaced; export records the backend it used."""
+    import os
+    import subprocess
+    import sys
+
+    from vinetwin.render.backends import DEFAULT_BACKEND
+
+    assert resolve_backend("pyrender") == "pyrender"
+    with pytest.raises(InputError, match="choose auto or one of"):
+        resolve_backend("vtk")
+    code = (
+        "import logging, sys\n"
+        "logging.basicConfig(stream=sys.stdout)\n"
+        "from vinetwin.render.backends import resolve_backend\n"
+        "print('USING', resolve_backend(None), resolve_backend('auto'), resolve_backend('mujoco'))\n"
+    )
+    environ = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY")}
+    run = functools.partial(
+        subprocess.run, [sys.executable, "-c", code], capture_output=True, text=True, timeout=120
+    )
+    out = run(env=environ | {"MUJOCO_GL": "bogus"})
+    assert "USING open3d open3d mujoco" in out.stdout, out.stdout + out.stderr[-1000:]
+    assert "rendering with open3d" in out.stdout and "MUJOCO_GL" in out.stdout
+    out = run(env=environ | {"MUJOCO_GL": "egl"})
+    if f"USING {DEFAULT_BACKEND} " not in out.stdout:
+        pytest.skip(f"{DEFAULT_BACKEND} cannot start here: {out.stdout[-500:]}")
+    assert "rendering with" not in out.stdout
+
+
+def test_mujoco_renders_a_mesh_beyond_its_stl_limit() -> None:
+    """MuJoCo reads at most 200k faces from one STL file: a bigger vine is split into several,
+    and renders as Open3D does."""
+    from vinetwin.render.backends import MUJOCO_STL_FACES
+
+    ball = trimesh.creation.icosphere(subdivisions=7, radius=0.05)  # 327,680 faces
+    assert len(ball.faces) > MUJOCO_STL_FACES
+    ball.apply_translation([0.01, -0.005, 0.25])
+    cam = d405("848x480")
+    mj = _backend_or_skip("mujoco", ball.vertices, ball.faces, cam)
+    o3 = get_backend("open3d", ball.vertices, ball.faces, cam, coarse_step=1)
+    a, b = mj.render(np.eye(4)), o3.render(np.eye(4))
+    mj.close()
+    both = (a > 0) & (b > 0)
+    assert both.sum() > 20_000  # a 10 cm ball at 25 cm; a missing part would show below
+    assert np.abs(a[both] - b[both]).max() < 1e-3
+    assert ((a > 0) != (b > 0)).sum() < 0.01 * both.sum()
 
 
 def _d405_numpy(

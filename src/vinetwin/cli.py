@@ -23,7 +23,7 @@ log = logging.getLogger("vinetwin")
 
 Positional = tyro.conf.Positional
 Nested = tyro.conf.OmitArgPrefixes
-BackendChoice = Literal["open3d", "pyrender", "mujoco"]
+BackendChoice = Literal["auto", "open3d", "pyrender", "mujoco"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -119,8 +119,9 @@ class Export:
     """Twin folder, or a folder of twin folders (a vineyard)."""
     poses: tuple[str, ...] = ()
     """Pose ids to export (default: all; one twin only)."""
-    backend: BackendChoice = "open3d"
-    """Depth renderer: open3d (ray casting, no OpenGL), pyrender or mujoco (EGL)."""
+    backend: BackendChoice = "auto"
+    """Depth renderer: open3d (ray casting, no OpenGL), pyrender or mujoco (EGL); auto: the
+    library's default where it starts here, else open3d (docs/render.md)."""
     workers: int = 0
     """Processes; 0 chooses (1 for open3d, one per core for pyrender, mujoco; Ray: its CPUs)."""
     cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
@@ -152,8 +153,8 @@ class Preview:
     """Pose id."""
     out: Path = Path("preview.png")
     """PNG to write."""
-    backend: BackendChoice = "open3d"
-    """Depth renderer."""
+    backend: BackendChoice = "auto"
+    """Depth renderer, as for export."""
     seed: int = 0
     """Base seed of the D405 noise."""
 

@@ -3,16 +3,19 @@
 Every backend renders metric z-depth (float32, metres, OpenCV camera, 0 where nothing is hit) of
 a triangle mesh (vine frame) seen by a `CameraModel` at `T_vine_camera`:
 
-- `open3d`: Open3D ray casting (`RaycastingScene`), the default: no OpenGL needed;
+- `open3d`: Open3D ray casting (`RaycastingScene`): no OpenGL needed, exact;
 - `pyrender`: OpenGL rasterisation, headless through EGL (or OSMesa with PYOPENGL_PLATFORM=osmesa);
 - `mujoco`: MuJoCo's offscreen renderer (EGL), the vine as a mesh asset.
 
 A backend that cannot start raises `BackendUnavailable` with the reason; `get_backend` never
-falls back to another backend silently.
+falls back to another backend. Where a user names none, `resolve_backend(None)` gives
+`DEFAULT_BACKEND` if it can start here, else Open3D's, with a warning that says why.
 """
 
 from __future__ import annotations
 
+import functools
+import logging
 import os
 from typing import Any, Literal, Protocol
 
@@ -29,6 +32,21 @@ from vinetwin.mesh import check_mesh_arrays
 BackendName = Literal["open3d", "pyrender", "mujoco"]
 BACKENDS: tuple[BackendName, ...] = ("open3d", "pyrender", "mujoco")
 DepthImage = npt.NDArray[np.float32]
+
+DEFAULT_BACKEND: BackendName = "mujoco"
+"""The renderer of batches of references (`vinetwin export`, and `vinetwin preview`, which shows
+what export writes) when none is named: the fastest per view of the three
+(`benchmarks/render.py`), within 1 mm of Open3D's exact ray casting on every pixel both see
+(`tests/test_render.py`). Where it cannot start (no EGL), `resolve_backend` takes
+`FALLBACK_BACKEND`, which needs no OpenGL. Code that renders a single view of a mesh it has
+just loaded (a reference rendered on the fly, the web app's preview, the simulation's scene)
+keeps Open3D: it builds its scene in about a tenth of the time MuJoCo compiles the mesh (0.1
+against 1.6 s on the bundled sample), more than one view costs."""
+FALLBACK_BACKEND: BackendName = "open3d"
+MUJOCO_STL_FACES = 200_000
+"""The most faces MuJoCo's STL reader takes in one file."""
+
+log = logging.getLogger(__name__)
 
 
 class DepthBackend(Protocol):
@@ -254,8 +272,18 @@ def vine_scene_xml(
     """
     import trimesh
 
-    stl = trimesh.Trimesh(vertices, faces, process=False).export(file_type="stl")
-    assert isinstance(stl, bytes)
+    # MuJoCo's STL reader takes at most 200k faces a file: a bigger vine goes in as several
+    assets = {}
+    for k, start in enumerate(range(0, max(len(faces), 1), MUJOCO_STL_FACES)):
+        part = faces[start : start + MUJOCO_STL_FACES]
+        stl = trimesh.Trimesh(vertices, part, process=False).export(file_type="stl")
+        assert isinstance(stl, bytes)
+        assets[f"vine{k}.stl"] = stl
+    meshes = "".join(f'<mesh name="{n[:-4]}" file="{n}"/>' for n in assets)
+    geoms = "\n    ".join(
+        f'<geom name="{n[:-4]}" type="mesh" mesh="{n[:-4]}" contype="0" conaffinity="0"/>'
+        for n in assets
+    )
     pixel = 1e-6  # sensor pixel pitch used to express intrinsics (any positive value works)
     c = camera
     # MuJoCo's principal point is the image centre's offset from it, in pixels, both axes
@@ -264,22 +292,53 @@ def vine_scene_xml(
     py = (c.height - 1) / 2 - c.cy
     xml = f"""
 <mujoco model="vinetwin_vine">
-  <compiler boundmass="1e-6" boundinertia="1e-12"/>
+  <compiler boundmass="1e-6" boundinertia="1e-12" inertiafromgeom="false"/>
   <statistic extent="1" center="0 0 0"/>
   <visual>
     <global offwidth="{c.width}" offheight="{c.height}"/>
     <map znear="0.005" zfar="10"/>
     <quality shadowsize="0" offsamples="0"/>
   </visual>
-  <asset><mesh name="vine" file="vine.stl"/></asset>
+  <asset>{meshes}</asset>
   <worldbody>
-    <geom name="vine" type="mesh" mesh="vine" contype="0" conaffinity="0"/>
+    {geoms}
     <camera name="d405" mode="fixed" pos="0 0 0" resolution="{c.width} {c.height}"
             focalpixel="{c.fx} {c.fy}" principalpixel="{px} {py}"
             sensorsize="{c.width * pixel} {c.height * pixel}"/>
   </worldbody>
 </mujoco>"""
-    return xml, {"vine.stl": stl}
+    return xml, assets
+
+
+def resolve_backend(name: str | None) -> BackendName:
+    """The backend to use: `name` when it names one (InputError if unknown; never replaced);
+    None or "auto": `DEFAULT_BACKEND` where it can start in this process, else
+    `FALLBACK_BACKEND` with a warning naming why."""
+    if name is not None and name != "auto":
+        for known in BACKENDS:
+            if name == known:
+                return known
+        raise InputError(
+            f"unknown render backend '{name}'; choose auto or one of: {', '.join(BACKENDS)}"
+        )
+    why = _cannot_start(DEFAULT_BACKEND)
+    if not why:
+        return DEFAULT_BACKEND
+    log.warning("rendering with %s: %s", FALLBACK_BACKEND, why)
+    return FALLBACK_BACKEND
+
+
+@functools.cache
+def _cannot_start(name: BackendName) -> str:
+    """Why `name` cannot render in this process ("" when it can), tried once on a tetrahedron."""
+    cam = CameraModel(width=16, height=16, fx=20.0, fy=20.0, cx=7.5, cy=7.5)
+    V = [[0, 0, 0.3], [0.1, 0, 0.3], [0, 0.1, 0.3], [0, 0, 0.4]]
+    F = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+    try:
+        get_backend(name, V, F, cam).close()
+    except BackendUnavailable as exc:
+        return str(exc)
+    return ""
 
 
 def get_backend(

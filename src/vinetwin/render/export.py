@@ -42,7 +42,7 @@ from vinetwin.executor import (
 from vinetwin.files import file_sha256
 from vinetwin.jobstore import JobStore
 from vinetwin.mesh import load_mesh
-from vinetwin.render.backends import BACKENDS, DepthBackend, get_backend
+from vinetwin.render.backends import DepthBackend, get_backend, resolve_backend
 from vinetwin.render.reference import (
     REFERENCE_FORMAT,
     inputs_digest,
@@ -201,16 +201,13 @@ def plan_export(
     twin: Twin,
     pose_ids: Sequence[str] | None = None,
     *,
-    backend: str = "open3d",
+    backend: str | None = None,
     seed: int = 0,
     sensor: SensorConfig | None = None,
     force: bool = False,
 ) -> tuple[list[PoseResult], list[_Job]]:
     """The poses already current (skipped) and the jobs that render the others."""
-    if backend not in BACKENDS:
-        raise InputError(
-            f"unknown render backend '{backend}'; choose one of: {', '.join(BACKENDS)}"
-        )
+    backend = resolve_backend(backend)
     sensor = sensor or SensorConfig()
     ids = list(pose_ids) if pose_ids else [p.id for p in twin.poses]
     poses = [twin.pose(i) for i in ids]  # raises TwinError naming an unknown id
@@ -261,7 +258,7 @@ def plan_export(
 def export_many(
     twins: Sequence[Twin],
     *,
-    backend: str = "open3d",
+    backend: str | None = None,
     workers: int = 0,
     seed: int = 0,
     sensor: SensorConfig | None = None,
@@ -272,6 +269,7 @@ def export_many(
     """Exports every pose of every twin in one pool of workers (a vineyard: a folder of twin
     folders). See `export_references` for the arguments."""
     t_start = time.perf_counter()
+    backend = resolve_backend(backend)
     skipped: list[PoseResult] = []
     jobs: list[_Job] = []
     for twin in twins:
@@ -290,7 +288,7 @@ def export_references(
     twin: Twin,
     pose_ids: Sequence[str] | None = None,
     *,
-    backend: str = "open3d",
+    backend: str | None = None,
     workers: int = 0,
     seed: int = 0,
     sensor: SensorConfig | None = None,
@@ -303,7 +301,8 @@ def export_references(
     Args:
         twin: the loaded twin.
         pose_ids: poses to export (default: all).
-        backend: depth backend (open3d, pyrender, mujoco).
+        backend: depth backend (open3d, pyrender, mujoco); None: the default
+            (`render.backends.resolve_backend`).
         workers: worker processes; 1 renders in this process; 0 chooses: 1 for open3d (its
             ray caster already uses every core), one per core for pyrender and mujoco.
         seed: base noise seed; each pose derives its own from it and its id.
@@ -314,6 +313,7 @@ def export_references(
         progress: called after each pose with (result, done, total).
     """
     t_start = time.perf_counter()
+    backend = resolve_backend(backend)
     skipped, jobs = plan_export(
         twin, pose_ids, backend=backend, seed=seed, sensor=sensor, force=force
     )
@@ -375,7 +375,7 @@ def export_twins(
     path: str | Path,
     pose_ids: Sequence[str] = (),
     *,
-    backend: str = "open3d",
+    backend: str | None = None,
     workers: int = 0,
     seed: int = 0,
     clean: bool = False,

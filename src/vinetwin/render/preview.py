@@ -19,11 +19,11 @@ log = logging.getLogger(__name__)
 
 
 def preview_pose(
-    twin: Twin, pose_id: str, out: str | Path, backend: str = "open3d", seed: int = 0
+    twin: Twin, pose_id: str, out: str | Path, backend: str | None = None, seed: int = 0
 ) -> Reference:
     """Renders one pose's reference (the export's settings and noise seed) and writes its
-    preview PNG to `out`; returns the reference."""
-    from vinetwin.render.backends import get_backend
+    preview PNG to `out`; returns the reference. `backend` None: the export's default."""
+    from vinetwin.render.backends import get_backend, resolve_backend
     from vinetwin.render.reference import pose_seed, render_reference
     from vinetwin.render.sensor import SensorConfig
 
@@ -35,6 +35,7 @@ def preview_pose(
     out.parent.mkdir(parents=True, exist_ok=True)
     pose = twin.pose(pose_id)
     mesh = twin.load_mesh()
+    backend = resolve_backend(backend)
     renderer = get_backend(backend, mesh.vertices, mesh.faces, twin.camera)
     try:
         ref = render_reference(
