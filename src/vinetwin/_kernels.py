@@ -130,29 +130,14 @@ def d405_edges(
     """The silhouette pixels of the D405 model, in row-major order: those whose (2w+1)^2
     window (clipped at the border) holds a surface and either an invalid pixel or a depth
     range above `jump` times its nearest depth. Returns their rows, columns, and the window's
-    nearest and farthest depths (float32).
-
-    Separable: each pixel's row extremes first, then the column extremes of those. A vine
-    covers a small part of its image, so a row window without a surface (found by a running
-    count of valid pixels) is not scanned: nothing near, a hole."""
+    nearest and farthest depths (float32)."""
     H, W = depth.shape
-    inf = np.float32(np.inf)
     rnear = np.empty((H, W), np.float32)
     rfar = np.empty((H, W), np.float32)
     rhole = np.empty((H, W), np.bool_)
-    for v in range(H):
-        count = 0  # valid pixels in columns [u - w, u + w] of this row
-        for uu in range(min(W, w)):
-            count += depth[v, uu] > 0
+    for v in range(H):  # separable: the rows' extremes first
         for u in range(W):
-            if u + w < W:
-                count += depth[v, u + w] > 0
-            if u - w - 1 >= 0:
-                count -= depth[v, u - w - 1] > 0
-            if count == 0:
-                rnear[v, u], rfar[v, u], rhole[v, u] = inf, np.float32(0.0), True
-                continue
-            lo, hi, hole = inf, np.float32(0.0), False
+            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
             for uu in range(max(0, u - w), min(W, u + w + 1)):
                 z = depth[v, uu]
                 if z > 0:
@@ -163,22 +148,21 @@ def d405_edges(
                 else:
                     hole = True
             rnear[v, u], rfar[v, u], rhole[v, u] = lo, hi, hole
-    ev = np.empty(H * W, np.int32)
-    eu = np.empty(H * W, np.int32)
+    ev = np.empty(H * W, np.int64)
+    eu = np.empty(H * W, np.int64)
     nv = np.empty(H * W, np.float32)
     fv = np.empty(H * W, np.float32)
     n = 0
     for v in range(H):
-        v0, v1 = max(0, v - w), min(H, v + w + 1)
         for u in range(W):
-            lo, hi, hole = inf, np.float32(0.0), False
-            for vv in range(v0, v1):
+            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
+            for vv in range(max(0, v - w), min(H, v + w + 1)):
                 if rnear[vv, u] < lo:
                     lo = rnear[vv, u]
                 if rfar[vv, u] > hi:
                     hi = rfar[vv, u]
                 hole = hole or rhole[vv, u]
-            if lo < inf and (hole or np.float32(hi - lo) > np.float32(jump * lo)):
+            if lo < np.inf and (hole or np.float32(hi - lo) > np.float32(jump * lo)):
                 ev[n], eu[n], nv[n], fv[n] = v, u, lo, hi
                 n += 1
     return ev[:n].copy(), eu[:n].copy(), nv[:n].copy(), fv[:n].copy()
