@@ -147,7 +147,7 @@ def time_export(
         again = export_references(t, workers=workers, backend=backend)
         resume_s = time.perf_counter() - t1
         return {
-            "backend": resolve_backend(backend),
+            "backend": resolve_backend(backend, n_refs),
             "references": n_refs,
             "workers": workers,
             "seconds": seconds,

@@ -154,7 +154,7 @@ def test_export_writes_loadable_files_and_resumes(twin_copy: Twin) -> None:
         info = json.loads(meta.read_text())
         n = info["points"]
         assert n > 100 and info["noise_seed"] == refmod.pose_seed(0, pid)
-        assert info["backend"] == resolve_backend(None)  # the one used, never "auto"
+        assert info["backend"] == resolve_backend(None, 3)  # the one used, never "auto"
         pc = o3d.io.read_point_cloud(str(ply))
         assert len(pc.points) == n and pc.has_normals()
         pc2 = o3d.io.read_point_cloud(str(pcd))
@@ -268,35 +268,57 @@ def test_backend_that_cannot_start_says_why(backend: str, env: dict[str, str], n
     assert f"UNAVAILABLE {backend}" in out.stdout and needle in out.stdout, out.stderr[-1000:]
 
 
-def test_default_backend_falls_back_to_open3d_where_it_cannot_start(tmp_path: Path) -> None:
-    """None or "auto" gives DEFAULT_BACKEND where it starts, else open3d with a warning that
-    says why; a named backend is never replaced; export records the backend it used."""
+def test_auto_backend_by_batch_size_and_where_it_can_start() -> None:
+    """auto (or None) gives SINGLE_BACKEND below AUTO_MIN_VIEWS views, BATCH_BACKEND from there
+    where it starts, else SINGLE_BACKEND with a warning that says why; a named backend is never
+    replaced."""
     import os
     import subprocess
     import sys
 
-    from vinetwin.render.backends import DEFAULT_BACKEND
+    from vinetwin.render.backends import AUTO_MIN_VIEWS, BATCH_BACKEND, SINGLE_BACKEND
 
-    assert resolve_backend("pyrender") == "pyrender"
+    assert resolve_backend("pyrender", 10_000) == "pyrender"
+    assert resolve_backend(None) == resolve_backend("auto", AUTO_MIN_VIEWS - 1) == SINGLE_BACKEND
     with pytest.raises(InputError, match="choose auto or one of"):
         resolve_backend("vtk")
     code = (
         "import logging, sys\n"
         "logging.basicConfig(stream=sys.stdout)\n"
-        "from vinetwin.render.backends import resolve_backend\n"
-        "print('USING', resolve_backend(None), resolve_backend('auto'), resolve_backend('mujoco'))\n"
+        "from vinetwin.render.backends import AUTO_MIN_VIEWS as N, resolve_backend as r\n"
+        "print('USING', r(None, N), r('auto', 10 * N), r('auto', N - 1), r('mujoco'))\n"
     )
     environ = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY")}
     run = functools.partial(
         subprocess.run, [sys.executable, "-c", code], capture_output=True, text=True, timeout=120
     )
     out = run(env=environ | {"MUJOCO_GL": "bogus"})
-    assert "USING open3d open3d mujoco" in out.stdout, out.stdout + out.stderr[-1000:]
-    assert "rendering with open3d" in out.stdout and "MUJOCO_GL" in out.stdout
+    s = SINGLE_BACKEND
+    assert f"USING {s} {s} {s} mujoco" in out.stdout, out.stdout + out.stderr[-1000:]
+    assert f"rendering with {s}" in out.stdout and "MUJOCO_GL" in out.stdout
     out = run(env=environ | {"MUJOCO_GL": "egl"})
-    if f"USING {DEFAULT_BACKEND} " not in out.stdout:
-        pytest.skip(f"{DEFAULT_BACKEND} cannot start here: {out.stdout[-500:]}")
+    if f"USING {BATCH_BACKEND} {BATCH_BACKEND} {s} " not in out.stdout:
+        pytest.skip(f"{BATCH_BACKEND} cannot start here: {out.stdout[-500:]}")
     assert "rendering with" not in out.stdout
+
+
+def test_export_of_a_batch_uses_the_batch_backend(
+    twin_copy: Twin, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from vinetwin.render import backends
+
+    if backends._cannot_start(backends.BATCH_BACKEND):
+        pytest.skip(backends._cannot_start(backends.BATCH_BACKEND))
+    monkeypatch.setattr(backends, "AUTO_MIN_VIEWS", 2)
+    ids = [p.id for p in twin_copy.poses[:2]]
+    assert export_references(twin_copy, ids, workers=1).count("rendered") == 2
+    for pid in ids:
+        info = json.loads((twin_copy.references_dir / f"{pid}.json").read_text())
+        assert info["backend"] == backends.BATCH_BACKEND and info["points"] > 100
+    # one pose is not a batch: open3d, a changed input, rendered again
+    assert export_references(twin_copy, ids[:1], workers=1).count("rendered") == 1
+    info = json.loads((twin_copy.references_dir / f"{ids[0]}.json").read_text())
+    assert info["backend"] == backends.SINGLE_BACKEND
 
 
 def test_mujoco_renders_a_mesh_beyond_its_stl_limit() -> None:

@@ -8,8 +8,8 @@ a triangle mesh (vine frame) seen by a `CameraModel` at `T_vine_camera`:
 - `mujoco`: MuJoCo's offscreen renderer (EGL), the vine as a mesh asset.
 
 A backend that cannot start raises `BackendUnavailable` with the reason; `get_backend` never
-falls back to another backend. Where a user names none, `resolve_backend(None)` gives
-`DEFAULT_BACKEND` if it can start here, else Open3D's, with a warning that says why.
+falls back to another backend. Where a user names none ("auto"), `resolve_backend` picks by the
+number of views: see `BATCH_BACKEND`, `SINGLE_BACKEND`, `AUTO_MIN_VIEWS`.
 """
 
 from __future__ import annotations
@@ -33,16 +33,23 @@ BackendName = Literal["open3d", "pyrender", "mujoco"]
 BACKENDS: tuple[BackendName, ...] = ("open3d", "pyrender", "mujoco")
 DepthImage = npt.NDArray[np.float32]
 
-DEFAULT_BACKEND: BackendName = "mujoco"
-"""The renderer of batches of references (`vinetwin export`, and `vinetwin preview`, which shows
-what export writes) when none is named: the fastest per view of the three
-(`benchmarks/render.py`), within 1 mm of Open3D's exact ray casting on every pixel both see
-(`tests/test_render.py`). Where it cannot start (no EGL), `resolve_backend` takes
-`FALLBACK_BACKEND`, which needs no OpenGL. Code that renders a single view of a mesh it has
-just loaded (a reference rendered on the fly, the web app's preview, the simulation's scene)
-keeps Open3D: it builds its scene in about a tenth of the time MuJoCo compiles the mesh (0.1
-against 1.6 s on the bundled sample), more than one view costs."""
-FALLBACK_BACKEND: BackendName = "open3d"
+BATCH_BACKEND: BackendName = "mujoco"
+"""What `auto` (the default of export and preview) renders a batch of `AUTO_MIN_VIEWS` views or
+more with: the fastest per view of the three (`benchmarks/render.py`: 12.5 ms against Open3D's
+33.7 on the sample at 848x480), within 1 mm of Open3D's exact ray casting on every pixel both
+see (`tests/test_render.py`). Where it cannot start (no EGL), `auto` takes `SINGLE_BACKEND`."""
+SINGLE_BACKEND: BackendName = "open3d"
+"""What `auto` renders fewer views with, and where `BATCH_BACKEND` cannot start; code that renders
+views of a mesh it has just loaded (a reference rendered on the fly, the web app's preview, the
+simulation's scene) uses it too: Open3D builds its scene in 0.04-0.4 s where MuJoCo compiles the
+same vine in 0.2-1.6 s (the sample) or 2-6 s (900k triangles), and needs no OpenGL."""
+AUTO_MIN_VIEWS = 100
+"""The batch size from which `auto` takes `BATCH_BACKEND`: where its faster views repay its
+slower start. Measured exports (`render.export`, its default workers): the sample, 50 views
+3.2 s with open3d against 4.8 s with mujoco, 200 views 12.6 against 7.6 s; the dense generated
+vine (897k triangles) 7.1 against 9.5 s and 24.5 against 17.3 s."""
+
+log = logging.getLogger(__name__)
 MUJOCO_STL_FACES = 200_000
 """The most faces MuJoCo's STL reader takes in one file."""
 
@@ -310,10 +317,11 @@ def vine_scene_xml(
     return xml, assets
 
 
-def resolve_backend(name: str | None) -> BackendName:
-    """The backend to use: `name` when it names one (InputError if unknown; never replaced);
-    None or "auto": `DEFAULT_BACKEND` where it can start in this process, else
-    `FALLBACK_BACKEND` with a warning naming why."""
+def resolve_backend(name: str | None, views: int = 1) -> BackendName:
+    """The backend to render `views` views with: `name` when it names one (InputError if
+    unknown; never replaced); None or "auto": `BATCH_BACKEND` for `AUTO_MIN_VIEWS` views or
+    more where it can start in this process (else a warning naming why), `SINGLE_BACKEND`
+    otherwise."""
     if name is not None and name != "auto":
         for known in BACKENDS:
             if name == known:
@@ -321,11 +329,13 @@ def resolve_backend(name: str | None) -> BackendName:
         raise InputError(
             f"unknown render backend '{name}'; choose auto or one of: {', '.join(BACKENDS)}"
         )
-    why = _cannot_start(DEFAULT_BACKEND)
+    if views < AUTO_MIN_VIEWS:
+        return SINGLE_BACKEND
+    why = _cannot_start(BATCH_BACKEND)
     if not why:
-        return DEFAULT_BACKEND
-    log.warning("rendering with %s: %s", FALLBACK_BACKEND, why)
-    return FALLBACK_BACKEND
+        return BATCH_BACKEND
+    log.warning("rendering with %s: %s", SINGLE_BACKEND, why)
+    return SINGLE_BACKEND
 
 
 @functools.cache

@@ -207,9 +207,9 @@ def plan_export(
     force: bool = False,
 ) -> tuple[list[PoseResult], list[_Job]]:
     """The poses already current (skipped) and the jobs that render the others."""
-    backend = resolve_backend(backend)
     sensor = sensor or SensorConfig()
     ids = list(pose_ids) if pose_ids else [p.id for p in twin.poses]
+    backend = resolve_backend(backend, len(ids))
     poses = [twin.pose(i) for i in ids]  # raises TwinError naming an unknown id
     for p in poses:  # ids name the files written: never a path out of the folder
         check_id(p.id, "pose id")
@@ -269,7 +269,7 @@ def export_many(
     """Exports every pose of every twin in one pool of workers (a vineyard: a folder of twin
     folders). See `export_references` for the arguments."""
     t_start = time.perf_counter()
-    backend = resolve_backend(backend)
+    backend = resolve_backend(backend, sum(len(t.poses) for t in twins))
     skipped: list[PoseResult] = []
     jobs: list[_Job] = []
     for twin in twins:
@@ -301,8 +301,8 @@ def export_references(
     Args:
         twin: the loaded twin.
         pose_ids: poses to export (default: all).
-        backend: depth backend (open3d, pyrender, mujoco); None: the default
-            (`render.backends.resolve_backend`).
+        backend: depth backend (open3d, pyrender, mujoco); None or "auto": chosen by the
+            number of poses (`render.backends.resolve_backend`).
         workers: worker processes; 1 renders in this process; 0 chooses: 1 for open3d (its
             ray caster already uses every core), one per core for pyrender and mujoco.
         seed: base noise seed; each pose derives its own from it and its id.
@@ -313,7 +313,7 @@ def export_references(
         progress: called after each pose with (result, done, total).
     """
     t_start = time.perf_counter()
-    backend = resolve_backend(backend)
+    backend = resolve_backend(backend, len(pose_ids) if pose_ids else len(twin.poses))
     skipped, jobs = plan_export(
         twin, pose_ids, backend=backend, seed=seed, sensor=sensor, force=force
     )

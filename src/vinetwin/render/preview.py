@@ -22,7 +22,8 @@ def preview_pose(
     twin: Twin, pose_id: str, out: str | Path, backend: str | None = None, seed: int = 0
 ) -> Reference:
     """Renders one pose's reference (the export's settings and noise seed) and writes its
-    preview PNG to `out`; returns the reference. `backend` None: the export's default."""
+    preview PNG to `out`; returns the reference. `backend` None or "auto": the one
+    `render.backends.resolve_backend` picks for a single view."""
     from vinetwin.render.backends import get_backend, resolve_backend
     from vinetwin.render.reference import pose_seed, render_reference
     from vinetwin.render.sensor import SensorConfig
