@@ -49,7 +49,6 @@ slower start. Measured exports (`render.export`, its default workers): the sampl
 3.2 s with open3d against 4.8 s with mujoco, 200 views 12.6 against 7.6 s; the dense generated
 vine (897k triangles) 7.1 against 9.5 s and 24.5 against 17.3 s."""
 
-log = logging.getLogger(__name__)
 MUJOCO_STL_FACES = 200_000
 """The most faces MuJoCo's STL reader takes in one file."""
 
@@ -348,6 +347,8 @@ def _cannot_start(name: BackendName) -> str:
         get_backend(name, V, F, cam).close()
     except BackendUnavailable as exc:
         return str(exc)
+    except Exception as exc:  # anything else that stops it here is said, not hidden
+        return f"render backend '{name}' failed to start: {type(exc).__name__}: {exc}"
     return ""
 
 
