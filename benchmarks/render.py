@@ -1,7 +1,7 @@
 """Benchmark: milliseconds per reference cloud per backend, and batch export throughput.
 
-For each backend and resolution (848x480, 1280x720) it times, over the bundled sample's poses
-and perturbed copies of them: the depth render, the D405 sensor model, the perception chain, and
+For each backend and resolution (848x480, 1280x720) it times, over a twin's poses (`--twin`,
+default the bundled sample) and perturbed copies of them: the depth render, the D405 sensor model, the perception chain, and
 the whole reference. Side by side, in the same run, it times the perception chain a user would
 otherwise write with Open3D (create_from_depth_image, voxel_down_sample,
 remove_statistical_outlier, estimate_normals + orient towards the camera) on the same images.
@@ -167,14 +167,15 @@ def main() -> None:
     ap.add_argument("--refs", type=int, default=1000, help="references in the export run")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--export-backend", default="auto", help="backend of the export run")
+    ap.add_argument("--twin", type=Path, default=SAMPLE, help="twin folder (default: the sample)")
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
     n_poses, n_refs = (5, 20) if args.quick else (args.poses, args.refs)
     rng = np.random.default_rng(0)
-    twin = Twin.load(SAMPLE)
+    twin = Twin.load(args.twin)
     rows = time_backends(twin, n_poses, rng)
     print(
-        f"\nPer reference, median over {n_poses} poses of the bundled sample ({len(twin.load_mesh().faces)} triangles), ms:"
+        f"\nPer reference, median over {n_poses} poses of {twin.name} ({len(twin.load_mesh().faces)} triangles), ms:"
     )
     print(
         f"{'backend':9} {'res':9} {'render':>7} {'sensor':>7} {'chain':>7} {'total':>7} {'o3d chain':>9} {'ratio':>6} {'points':>6}"
@@ -205,7 +206,8 @@ def main() -> None:
         )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"per_reference": rows, "export": exports}, indent=1))
+        out = {"twin": twin.name, "per_reference": rows, "export": exports}
+        args.json.write_text(json.dumps(out, indent=1))
         print(f"wrote {args.json}")
 
 

@@ -1,4 +1,4 @@
-"""The ICP benchmark runs end to end (quick mode) and writes every figure; its timings are only
+"""The benchmarks run end to end (quick mode) and write every figure; their timings are only
 printed, never asserted."""
 
 from __future__ import annotations
@@ -40,6 +40,29 @@ def test_icp_benchmark_quick(tmp_path: Path) -> None:
         "symmetric",
     }
     assert "servo cycle" in proc.stdout
+
+
+def test_render_benchmark_quick(tmp_path: Path) -> None:
+    """Per reference for each backend and resolution, and the export with the backend `auto`
+    chose for that many references (20 in quick mode: open3d)."""
+    from vinetwin.render.backends import resolve_backend
+
+    out = tmp_path / "render.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "render.py"), "--quick", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads(out.read_text())
+    assert data["twin"] and len(data["per_reference"]) == 6
+    for r in data["per_reference"]:
+        assert "skipped" in r or r["reference_ms"] >= r["render_ms"] > 0
+    assert [e["workers"] for e in data["export"]] == [1, 2]
+    for e in data["export"]:
+        assert e["backend"] == resolve_backend(None, 20) and e["failed"] == 0
+        assert e["rerun_skipped"] == e["references"] == 20
 
 
 def test_scale_benchmark_quick(tmp_path: Path) -> None:
