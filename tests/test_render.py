@@ -321,6 +321,31 @@ def test_export_of_a_batch_uses_the_batch_backend(
     assert info["backend"] == backends.SINGLE_BACKEND
 
 
+def test_mujoco_refuses_to_render_from_another_thread(sample: tuple[Twin, trimesh.Trimesh]) -> None:
+    """Its EGL context is current in the thread that made it: another thread gets a named
+    error, not EGL_BAD_ACCESS from deep inside OpenGL."""
+    import threading
+
+    twin, mesh = sample
+    mj = _backend_or_skip("mujoco", mesh.vertices, mesh.faces, twin.camera)
+    T = twin.poses[0].T_vine_camera
+    errors: list[Exception] = []
+
+    def other() -> None:
+        try:
+            mj.render(T)
+        except Exception as exc:
+            errors.append(exc)
+
+    t = threading.Thread(target=other)
+    t.start()
+    t.join()
+    assert len(errors) == 1 and isinstance(errors[0], BackendUnavailable)
+    assert "thread that created it" in str(errors[0])
+    assert (mj.render(T) > 0).sum() > 10_000  # still renders in its own
+    mj.close()
+
+
 def test_mujoco_renders_a_mesh_beyond_its_stl_limit() -> None:
     """MuJoCo reads at most 200k faces from one STL file: a bigger vine is split into several,
     and renders as Open3D does."""

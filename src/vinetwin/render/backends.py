@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import threading
 from typing import Any, Literal, Protocol
 
 import numpy as np
@@ -251,8 +252,14 @@ class MujocoBackend:
             ) from exc
         self.renderer.enable_depth_rendering()
         self._far = float(self.model.vis.map.zfar * self.model.stat.extent)
+        self._thread = threading.get_ident()
 
     def render(self, T_vine_camera: Any) -> DepthImage:
+        if threading.get_ident() != self._thread:
+            # its EGL context is current in the thread that made it (another gets EGL_BAD_ACCESS)
+            raise BackendUnavailable(
+                "mujoco", "a MuJoCo renderer renders in the thread that created it, not another"
+            )
         T = check_pose(T_vine_camera, "T_vine_camera")
         pos, quat = cv.mujoco_camera_pos_quat(T)
         self.model.cam_pos[self._cam_id] = pos
