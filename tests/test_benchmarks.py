@@ -13,16 +13,27 @@ import pytest
 from tests.conftest import ROOT
 
 
-def test_icp_benchmark_quick(tmp_path: Path) -> None:
-    out = tmp_path / "icp.json"
+def _run(script: str, *args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    """Runs benchmarks/SCRIPT with `args`; asserts it exited 0."""
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "icp.py"), "--quick", "--json", str(out)],
+        [sys.executable, str(ROOT / "benchmarks" / script), *args],
         capture_output=True,
         text=True,
-        timeout=600,
+        timeout=timeout,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
-    data = json.loads(out.read_text())
+    return proc
+
+
+def _quick(script: str, out: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], dict]:
+    """Runs benchmarks/SCRIPT --json OUT (with `args`, default --quick); returns the JSON."""
+    proc = _run(script, *(args or ("--quick",)), "--json", str(out))
+    return proc, json.loads(out.read_text())
+
+
+def test_icp_benchmark_quick(tmp_path: Path) -> None:
+    out = tmp_path / "icp.json"
+    proc, data = _quick("icp.py", out)
     assert [t["start"] for t in data["tables"]] == ["warm", "identity"]
     for table in data["tables"]:
         methods = {r["method"]: r for r in table["rows"]}
@@ -48,14 +59,7 @@ def test_render_benchmark_quick(tmp_path: Path) -> None:
     from vinetwin.render.backends import resolve_backend
 
     out = tmp_path / "render.json"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "render.py"), "--quick", "--json", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    data = json.loads(out.read_text())
+    _, data = _quick("render.py", out)
     assert data["twin"] and len(data["per_reference"]) == 6
     for r in data["per_reference"]:
         assert "skipped" in r or r["reference_ms"] >= r["render_ms"] > 0
@@ -68,14 +72,7 @@ def test_render_benchmark_quick(tmp_path: Path) -> None:
 def test_scale_benchmark_quick(tmp_path: Path) -> None:
     """Every executor row is measured (local pool, in process, Ray) for export and validation."""
     out = tmp_path / "scale.json"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "scale.py"), "--quick", "--json", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    data = json.loads(out.read_text())
+    _, data = _quick("scale.py", out)
     jobs = [(r["job"], r["executor"]) for r in data["rows"]]
     assert len(jobs) == 5 and ("export", "Ray, 2 CPUs") in jobs
     assert all(r["per_second"] > 0 for r in data["rows"])
@@ -86,11 +83,7 @@ def test_icp_tables_read_the_benchmark_json(tmp_path: Path) -> None:
     docs/results/speed.md."""
     files = sorted(str(p) for p in (ROOT / "benchmarks" / "results").glob("icp*.json"))
     assert len(files) >= 3
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "icp_tables.py"), *files],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = _run("icp_tables.py", *files, timeout=120)
     assert proc.stdout.count("| tracking |") == 2 * len(files)
 
 
@@ -102,14 +95,7 @@ def test_web_benchmark_quick(tmp_path: Path) -> None:
     if not CHROMIUM.exists():
         pytest.skip("Debian's chromium is not installed")
     out = tmp_path / "web.json"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "web.py"), "--clicks", "2", "--json", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    data = json.loads(out.read_text())
+    proc, data = _quick("web.py", out, "--clicks", "2")
     assert data["measured"] + data["missed"] == 2 and data["measured"] >= 1
     for part in ("arrive_ms", "server_ms", "browser_ms"):
         assert data[part]["median"] > 0
