@@ -120,8 +120,7 @@ class Export:
     poses: tuple[str, ...] = ()
     """Pose ids to export (default: all; one twin only)."""
     backend: BackendChoice = "auto"
-    """Depth renderer: open3d (ray casting, no OpenGL), pyrender or mujoco (EGL); auto: by the
-    number of poses, mujoco for large batches where it starts (docs/render.md)."""
+    """Depth renderer; auto: mujoco for large batches where it starts, else open3d (docs/render.md)."""
     workers: int = 0
     """Processes; 0 chooses (1 for open3d, one per core for pyrender, mujoco; Ray: its CPUs)."""
     cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
