@@ -80,6 +80,11 @@ def config_for(start: str, variant: str, association: str | None = None) -> ICPC
         cfg = ICPConfig.coarse_to_fine(variant, max_iterations=MAX_ITER)
     else:
         cfg = ICPConfig(variant=variant, max_iterations=MAX_ITER)
+    return with_association(cfg, association)
+
+
+def with_association(cfg: ICPConfig, association: str | None) -> ICPConfig:
+    """`cfg` with `association` (None: as it is)."""
     return cfg if association is None else dataclasses.replace(cfg, association=association)
 
 
@@ -311,9 +316,7 @@ def cycle(
         for case in cases:
             servo = Servo(
                 case.reference,
-                icp=ICPConfig(variant=v)
-                if association is None
-                else ICPConfig(variant=v, association=association),
+                icp=with_association(ICPConfig(variant=v), association),
                 camera=twin.camera,
                 perception=per,
                 limits=Limits(max_linear_acceleration=0, max_angular_acceleration=0),

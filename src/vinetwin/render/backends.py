@@ -18,7 +18,7 @@ import functools
 import logging
 import os
 import threading
-from typing import Any, Literal, Protocol
+from typing import Any, Literal, Protocol, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -328,10 +328,9 @@ def resolve_backend(name: str | None, views: int = 1) -> BackendName:
     unknown; never replaced); None or "auto": `BATCH_BACKEND` for `AUTO_MIN_VIEWS` views or
     more where it can start in this process (else a warning naming why), `SINGLE_BACKEND`
     otherwise."""
-    if name is not None and name != "auto":
-        for known in BACKENDS:
-            if name == known:
-                return known
+    if name in BACKENDS:
+        return cast(BackendName, name)
+    if name not in (None, "auto"):
         raise InputError(
             f"unknown render backend '{name}'; choose auto or one of: {', '.join(BACKENDS)}"
         )

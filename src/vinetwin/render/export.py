@@ -276,7 +276,7 @@ def export_many(
         sk, js = plan_export(twin, backend=backend, seed=seed, sensor=sensor, force=force)
         skipped += sk
         jobs += js
-    report = _run_planned(skipped, jobs, backend, workers, executor, progress)
+    report = _run_planned(skipped, jobs, workers, executor, progress)
     order = {
         (str(t.root), p.id): k for k, (t, p) in enumerate((t, p) for t in twins for p in t.poses)
     }
@@ -313,11 +313,10 @@ def export_references(
         progress: called after each pose with (result, done, total).
     """
     t_start = time.perf_counter()
-    backend = resolve_backend(backend, len(pose_ids) if pose_ids else len(twin.poses))
     skipped, jobs = plan_export(
         twin, pose_ids, backend=backend, seed=seed, sensor=sensor, force=force
     )
-    report = _run_planned(skipped, jobs, backend, workers, executor, progress)
+    report = _run_planned(skipped, jobs, workers, executor, progress)
     ids = list(pose_ids) if pose_ids else [p.id for p in twin.poses]
     order = {pid: i for i, pid in enumerate(ids)}
     report.results.sort(key=lambda r: order[r.pose_id])
@@ -327,7 +326,6 @@ def export_references(
 def _run_planned(
     skipped: list[PoseResult],
     jobs: list[_Job],
-    backend: str,
     workers: int,
     executor: ExecutorConfig | None,
     progress: Callable[[PoseResult, int, int], None] | None,
@@ -339,7 +337,8 @@ def _run_planned(
             progress(r, k + 1, total)
     if executor is None:
         if workers <= 0:  # Open3D's ray caster already uses every core from one process
-            workers = 1 if backend == "open3d" else max(1, os.cpu_count() or 1)
+            open3d = bool(jobs) and jobs[0].backend == "open3d"  # plan_export's choice
+            workers = 1 if open3d else max(1, os.cpu_count() or 1)
         executor = ExecutorConfig(workers=workers)
     report.executor = executor.kind
     report.workers = workers_used(executor, len(jobs))
