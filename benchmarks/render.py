@@ -3,8 +3,8 @@
 For each backend and resolution (848x480, 1280x720) it times, over a twin's poses (`--twin`,
 default the bundled sample) and perturbed copies of them: the depth render, the D405 sensor model, the perception chain, and
 the whole reference. Side by side, in the same run, it times the perception chain a user would
-otherwise write with Open3D (create_from_depth_image, voxel_down_sample,
-remove_statistical_outlier, estimate_normals + orient towards the camera) on the same images.
+otherwise write with Open3D (create_from_depth_image, voxel_down_sample, the chain's outlier
+rule, estimate_normals + orient towards the camera) on the same images.
 Then it exports N references (default 1000) with the default backend (`--export-backend`; auto:
 `vinetwin.render.backends.resolve_backend`) in 1 and 2 worker processes.
 
@@ -42,7 +42,7 @@ SAMPLE = ROOT / "samples" / "vine_bilateral.twin"
 
 
 def open3d_chain(depth: np.ndarray, cam: CameraModel, cfg: PerceptionConfig) -> int:
-    """What a user would write with Open3D for the same perception steps."""
+    """What a user would write with Open3D for the same perception steps and outlier rule."""
     o3d = _lazy.open3d()
     intr = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
     img = o3d.geometry.Image(depth.astype(np.float32))
@@ -50,7 +50,10 @@ def open3d_chain(depth: np.ndarray, cam: CameraModel, cfg: PerceptionConfig) -> 
         img, intr, depth_scale=1.0, depth_trunc=cfg.max_depth
     )
     pc = pc.voxel_down_sample(cfg.voxel_size)
-    pc, _ = pc.remove_statistical_outlier(cfg.sor_neighbors, cfg.sor_std_ratio)
+    if cfg.outlier_rule == "radius":
+        pc, _ = pc.remove_radius_outlier(cfg.radius_neighbors, cfg.outlier_radius)
+    elif cfg.outlier_rule == "statistical":
+        pc, _ = pc.remove_statistical_outlier(cfg.sor_neighbors, cfg.sor_std_ratio)
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(cfg.normal_radius, cfg.normal_max_nn))
     pc.orient_normals_towards_camera_location(np.zeros(3))
     return len(pc.points)

@@ -8,7 +8,14 @@ import pytest
 
 from vinetwin import _lazy
 from vinetwin.camera import d405
-from vinetwin.cloud import Cloud, PerceptionConfig, perceive, statistical_outliers, voxel_downsample
+from vinetwin.cloud import (
+    Cloud,
+    PerceptionConfig,
+    perceive,
+    radius_outliers,
+    statistical_outliers,
+    voxel_downsample,
+)
 from vinetwin.errors import InputError
 
 
@@ -48,6 +55,48 @@ def test_statistical_outliers_match_open3d(rng: np.random.Generator) -> None:
     expected[np.asarray(idx)] = True
     np.testing.assert_array_equal(keep, expected)
     assert keep[2000:].sum() < 5  # the scattered points go
+
+
+@pytest.mark.parametrize(("neighbors", "radius"), [(1, 0.003), (2, 0.006), (5, 0.01)])
+def test_radius_outliers_match_open3d(
+    rng: np.random.Generator, neighbors: int, radius: float
+) -> None:
+    """The compiled grid search keeps exactly the points Open3D's remove_radius_outlier keeps:
+    a voxel-grid cloud of a cane and a leaf at 2 mm, with scattered points and isolated pairs."""
+    o3d = _lazy.open3d()
+    t = rng.uniform(0, 0.2, 20_000)
+    cane = np.c_[t, 0.01 * np.sin(20 * t), 0.2 + 0.002 * rng.normal(size=t.size)]
+    leaf = np.c_[rng.uniform(-0.05, 0, (8000, 2)), 0.25 + rng.normal(0, 0.001, 8000)]
+    far = rng.uniform(-0.3, 0.3, (40, 3)) + [0, 0, 0.3]
+    pairs = np.repeat(far[:10], 2, axis=0) + [0.004, 0, 0] * np.tile([[0], [1]], (10, 1))
+    pts, _ = voxel_downsample(np.vstack([cane, leaf, far, pairs]), 0.002)
+    keep = radius_outliers(pts, neighbors, radius)
+    _, idx = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).remove_radius_outlier(
+        neighbors, radius
+    )
+    expected = np.zeros(len(pts), bool)
+    expected[np.asarray(idx)] = True
+    np.testing.assert_array_equal(keep, expected)
+    assert 40 <= (~keep).sum() < 0.05 * len(pts)  # the scattered points go, the vine stays
+
+
+def test_the_radius_rule_drops_a_floating_speckle_and_keeps_a_thin_cane() -> None:
+    """A few pixels of depth floating in front of a wall (a D405 speckle) go; a 3-pixel wide
+    cane stays whole; "none" keeps the speckle; an unknown rule is named."""
+    cam = d405("848x480")
+    depth = plane_depth(cam, np.array([0.0, 0.0, -1.0]), np.array([0, 0, 0.30]))
+    depth[:, 400:403] = 0.20  # a thin cane, about 0.7 mm wide
+    depth[100:106, 100:106] = 0.12  # a 6x6-pixel speckle, 18 cm in front of the wall
+    cfg = PerceptionConfig(voxel_size=0.002)
+    kept = perceive(depth, cam, cfg, normals=False).points
+    assert not np.any(kept[:, 2] < 0.15)
+    cane = kept[np.abs(kept[:, 2] - 0.20) < 0.005]
+    none = perceive(depth, cam, PerceptionConfig(voxel_size=0.002, outlier_rule="none"))
+    none_cane = none.points[np.abs(none.points[:, 2] - 0.20) < 0.005]
+    assert len(cane) > 50 and len(cane) == len(none_cane)
+    assert np.any(none.points[:, 2] < 0.15)
+    with pytest.raises(InputError, match="outlier rule"):
+        PerceptionConfig(outlier_rule="median")
 
 
 @pytest.mark.parametrize("voxel", [0.002, 0.004])
@@ -119,7 +168,7 @@ def test_depth_threshold_and_flying_pixels() -> None:
     depth = np.full((cam.height, cam.width), 0.45, np.float32)  # a wall beyond max_depth
     depth[:, 200:240] = 0.15  # a cane
     depth[:, 240] = 0.30  # a smeared column between cane and wall
-    cloud = perceive(depth, cam, PerceptionConfig(max_depth=0.40, sor_neighbors=0))
+    cloud = perceive(depth, cam, PerceptionConfig(max_depth=0.40, outlier_rule="none"))
     z = cloud.points[:, 2]
     assert z.max() < 0.151  # the wall is cut and the flying pixels are dropped
     assert np.all(np.einsum("ij,ij->i", cloud.normals, cloud.points) < 0)  # normals face the camera
@@ -132,7 +181,7 @@ def test_depth_threshold_and_flying_pixels() -> None:
     filtered, _ = _kernels.organised_points(*args, 0.03, 2, False)
     assert raw[:, 2].max() > 0.29 and filtered[:, 2].max() < 0.151
     no_filter = perceive(
-        depth, cam, PerceptionConfig(max_depth=0.40, edge_threshold=0, sor_neighbors=0),
+        depth, cam, PerceptionConfig(max_depth=0.40, edge_threshold=0, outlier_rule="none"),
         normals=False,
     )  # fmt: skip
     assert no_filter.points[:, 2].max() < 0.151

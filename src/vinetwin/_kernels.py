@@ -541,16 +541,13 @@ def _gap(d: int, lo: float, hi: float, cell: float) -> float:
 
 
 @nb.njit(cache=True, nogil=True)
-def knn_mean_distance(
-    points: np.ndarray, k: int, cell: float, rings: int, threads: int
-) -> np.ndarray:
-    """Mean distance from each point to its k nearest points (itself included, at 0), exact,
-    by a search of grid cells of side `cell`: cell by cell, the points of the 27 cells around it
-    are gathered once and each of its points selects its k nearest among them (`_knn_cell`); a
-    point whose k-th distance might reach past them is searched alone in growing rings (after
-    ring r every point closer than r * cell has been seen). NaN where `rings` rings were not
-    enough (the caller finishes those with a k-d tree).
-    `threads`: numba's thread count (passed in: a kernel that asks numba cannot be cached)."""
+def _cell_runs(
+    points: np.ndarray, cell: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.int64, np.ndarray, int]:
+    """The points binned in grid cells of side `cell`: each point's cell (ci), the points in
+    cell order (order, sorted_pts), the runs of one cell each (starts, runkey) and a hash table
+    from a cell to its run (`_run_of`). Returns (ci, order, starts, runkey, table, mask,
+    sorted_pts, number of runs)."""
     n = points.shape[0]
     inv = 1.0 / cell
     ci = np.empty((n, 3), np.int64)
@@ -584,6 +581,22 @@ def knn_mean_distance(
     sorted_pts = np.empty((n, 3))
     for j in range(n):
         sorted_pts[j] = points[order[j]]
+    return ci, order, starts, runkey, table, mask, sorted_pts, nr
+
+
+@nb.njit(cache=True, nogil=True)
+def knn_mean_distance(
+    points: np.ndarray, k: int, cell: float, rings: int, threads: int
+) -> np.ndarray:
+    """Mean distance from each point to its k nearest points (itself included, at 0), exact,
+    by a search of grid cells of side `cell`: cell by cell, the points of the 27 cells around it
+    are gathered once and each of its points selects its k nearest among them (`_knn_cell`); a
+    point whose k-th distance might reach past them is searched alone in growing rings (after
+    ring r every point closer than r * cell has been seen). NaN where `rings` rings were not
+    enough (the caller finishes those with a k-d tree).
+    `threads`: numba's thread count (passed in: a kernel that asks numba cannot be cached)."""
+    n = points.shape[0]
+    ci, order, starts, runkey, table, mask, sorted_pts, nr = _cell_runs(points, cell)
     out = np.empty(n)
     chunks = max(1, min(threads * 4, nr // 64))
     size = (nr + chunks - 1) // chunks
@@ -783,3 +796,42 @@ def _knn_one(
         out[i] = acc / k
     else:
         out[i] = np.nan
+
+
+@nb.njit(cache=True, nogil=True)
+def radius_counts(points: np.ndarray, radius: float, enough: int) -> np.ndarray:
+    """For each point, how many other points lie within `radius` (inclusive), counted up to
+    `enough` (a point with that many is not counted further): the radius-outlier rule of PCL
+    and Open3D (`remove_radius_outlier`), by a search of grid cells of side `radius` (the 27
+    cells around a point's cell hold every point within the radius)."""
+    n = points.shape[0]
+    out = np.zeros(n, np.int64)
+    if n == 0:
+        return out
+    ci, order, starts, runkey, table, mask, sorted_pts, nr = _cell_runs(points, radius)
+    r2 = radius * radius
+    for r in range(nr):
+        j0 = order[starts[r]]
+        cx_, cy_, cz_ = ci[j0, 0], ci[j0, 1], ci[j0, 2]
+        for jj in range(starts[r], starts[r + 1]):
+            px, py, pz = sorted_pts[jj, 0], sorted_pts[jj, 1], sorted_pts[jj, 2]
+            c = 0  # the point itself included; the cells nearest first stop it early
+            for dx in (0, -1, 1):
+                for dy in (0, -1, 1):
+                    for dz in (0, -1, 1):
+                        rr = _run_of(cx_ + dx, cy_ + dy, cz_ + dz, table, runkey, mask)
+                        if rr < 0:
+                            continue
+                        for j in range(starts[rr], starts[rr + 1]):
+                            ex = sorted_pts[j, 0] - px
+                            ey = sorted_pts[j, 1] - py
+                            ez = sorted_pts[j, 2] - pz
+                            c += ex * ex + ey * ey + ez * ez <= r2
+                        if c > enough:
+                            break
+                    if c > enough:
+                        break
+                if c > enough:
+                    break
+            out[order[jj]] = min(c - 1, enough)
+    return out
