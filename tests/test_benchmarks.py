@@ -101,3 +101,19 @@ def test_web_benchmark_quick(tmp_path: Path) -> None:
         assert data[part]["median"] > 0
     assert data["browser_ms"]["median"] >= data["server_ms"]["median"]
     assert "click to preview" in proc.stdout
+
+
+def test_perception_benchmark_quick(tmp_path: Path) -> None:
+    """Each outlier rule's chain time, Open3D's, and the four variants' errors on its clouds."""
+    from vinetwin.cloud import OUTLIER_RULES
+
+    proc, data = _quick("perception.py", tmp_path / "perception.json")
+    (table,) = data["tables"]
+    assert table["voxel"] == 0.004 and table["views"] >= 1
+    assert [r["rule"] for r in table["rows"]] == list(OUTLIER_RULES)
+    for r in table["rows"]:
+        assert r["perception_ms"] > 0 and r["open3d_ms"] > 0 and r["points"] > 100
+        assert set(r["icp"]) == {"point_to_point", "lm", "point_to_plane", "symmetric"}
+        # the sample's warm starts converge with every rule (errors are in mm)
+        assert r["icp"]["symmetric"]["t_mm_median"] < 1.0
+    assert "Open3D ms" in proc.stdout
