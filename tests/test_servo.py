@@ -12,7 +12,7 @@ from tests.conftest import VineViews
 from vinetwin import frames as fr
 from vinetwin.cloud import Cloud
 from vinetwin.registration.icp import ICPConfig
-from vinetwin.servo.pbvs import Limits, pbvs_twist
+from vinetwin.servo.pbvs import Limits, kinematic_guess, pbvs_twist
 from vinetwin.servo.step import SafetyConfig, Servo
 
 NO_RAMP = {"max_linear_acceleration": 0.0, "max_angular_acceleration": 0.0}
@@ -130,6 +130,40 @@ def test_pose_jump_is_refused_and_the_restart_is_ramped(ref: Cloud, vine_views: 
     assert np.linalg.norm(r.twist[:3]) <= s.limits.max_linear_acceleration * dt + 1e-12
     assert np.linalg.norm(r.twist[3:]) <= s.limits.max_angular_acceleration * dt + 1e-12
     assert np.linalg.norm(r.twist) > 0
+
+
+def test_steady_tracking_runs_the_final_level_alone_and_falls_back_when_it_moved_much(
+    ref: Cloud, vine_views: VineViews
+) -> None:
+    """After a trusted frame, a frame whose kinematic prediction is 0.6 mm / 0.1 deg off is
+    aligned by ICP's final level alone (`tracked_frames`), within 0.05 mm / 0.005 deg of what
+    the full schedule answers; a frame whose prediction is 4 mm off (a slip of the robot's
+    kinematics, within the pose-jump limits) moves it past `track_translation`, so the full
+    schedule runs: trusted, not counted as tracked, within 1 mm of the truth."""
+    twin = vine_views.twin
+    Tg = twin.pose("p3").T_vine_camera
+    s = servo(ref, vine_views)
+    base = fr.make_pose(t=[0.3, 0.0, 0.5])
+    D0 = fr.make_pose(fr.so3_exp([0.0, 0.01, 0.0]), [0.004, -0.002, 0.003])
+    r0 = s.step_depth(vine_views.depth(Tg @ D0, 100), 0.0, T_base_camera=base)
+    assert r0.trusted and s.tracked_frames == 0, r0.reason  # the first frame: full schedule
+    # the camera moved 1 mm; the robot reports it with a 0.6 mm / 0.1 deg error
+    D1 = D0 @ fr.make_pose(t=[0.001, 0.0, 0.0])
+    slip = fr.make_pose(fr.so3_exp([0.0, 0.0, np.radians(0.1)]), [0.0, 0.0006, 0.0])
+    base1 = base @ fr.make_pose(t=[0.001, 0.0, 0.0]) @ slip
+    r1 = s.step_depth(vine_views.depth(Tg @ D1, 101), 1 / 30, T_base_camera=base1)
+    assert r1.trusted and s.tracked_frames == 1, r1.reason
+    assert r0.T_ref_cur is not None and r1.T_ref_cur is not None and r1.cloud is not None
+    guess = kinematic_guess(r0.T_ref_cur, base, base1)
+    full = s.icp.align(r1.cloud, guess)
+    dt, dr = fr.pose_error(r1.T_ref_cur, full.T_ref_cur)
+    assert dt < 5e-5 and dr < np.radians(0.005), (dt, dr)
+    assert fr.pose_error(r1.T_ref_cur, D1)[0] < 1e-3
+    # the robot reports a 4 mm motion the camera did not make
+    base2 = base1 @ fr.make_pose(t=[0.0, 0.004, 0.0])
+    r2 = s.step_depth(vine_views.depth(Tg @ D1, 102), 2 / 30, T_base_camera=base2)
+    assert r2.trusted and s.tracked_frames == 1, r2.reason
+    assert r2.T_ref_cur is not None and fr.pose_error(r2.T_ref_cur, D1)[0] < 1e-3
 
 
 def test_single_straight_cane_never_moves_the_arm() -> None:

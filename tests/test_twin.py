@@ -90,6 +90,11 @@ def _nan_pose(d: dict) -> None:
             "names no cut point",
         ),
         (lambda d: d["perception"].update(voxel_size=-1), TwinFieldError, "perception.voxel_size"),
+        (
+            lambda d: d["perception"].update(outlier_rule="median"),
+            TwinFieldError,
+            "perception.outlier_rule",
+        ),
         (lambda d: d.update(format="other"), TwinFieldError, "'format'"),
     ],
 )

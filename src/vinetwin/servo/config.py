@@ -132,6 +132,16 @@ class SafetyConfig(JsonFields):
     """After refusals for this long (s, by frame stamps) without a trusted frame the servo stops
     for good with the named reason "lost the vine" (the loop ends; `Servo.reset` starts again).
     0: never."""
+    track_translation: float = 0.002
+    """Steady tracking (the last frame trusted): ICP first runs only its final level from the
+    prediction, and that answer is used, without the wider levels, when it is trusted, moved
+    the prediction less than this (m) and `track_rotation`, and pairs at least
+    `track_overlap` of the last trusted frame's overlap; otherwise the full schedule runs on the
+    same frame. 0: always the full schedule."""
+    track_rotation: float = 0.0175
+    """rad (same rule)."""
+    track_overlap: float = 0.9
+    """Fraction of the last trusted frame's `ICPResult.overlap` (same rule)."""
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -34,7 +34,7 @@ import numpy as np
 
 import vinetwin
 from vinetwin.camera import CameraModel, d405
-from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
+from vinetwin.cloud import ICP_VARIANTS, OUTLIER_RULES, PerceptionConfig
 from vinetwin.errors import (
     CameraError,
     InputError,
@@ -446,7 +446,13 @@ class Twin:
 
         perc_data = f.obj(data.get("perception", {}), "perception")
         for key, val in perc_data.items():
-            if key in {fl for fl in PerceptionConfig.__dataclass_fields__}:
+            if key == "outlier_rule":
+                if val not in OUTLIER_RULES:
+                    raise f.fail(
+                        "perception.outlier_rule",
+                        f"must be one of {', '.join(OUTLIER_RULES)}, got {val!r}",
+                    )
+            elif key in {fl for fl in PerceptionConfig.__dataclass_fields__}:
                 f.number(perc_data, key, "perception.")
                 if val < 0:
                     raise f.fail(f"perception.{key}", f"must be >= 0, got {val}")
