@@ -187,6 +187,29 @@ def test_depth_threshold_and_flying_pixels() -> None:
     assert no_filter.points[:, 2].max() < 0.151
 
 
+def test_flying_pixel_mask_follows_its_rule_at_every_pixel(rng: np.random.Generator) -> None:
+    """The compiled keep mask is the rule written with numpy: in range, and not the far side
+    (z - zn > threshold * zn) of a jump to any valid 4-neighbour; borders, NaN and zeros too."""
+    from vinetwin import _kernels
+
+    depth = rng.uniform(0.1, 0.5, (270, 480)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = 0.0
+    depth[rng.random(depth.shape) < 0.05] = np.nan
+    depth[40:80, 100:160] = 0.2  # flat patches: long runs without a jump
+    dmin, dmax, t = 1e-6, 0.4, 0.03
+    z = depth.astype(np.float64)
+    ok = (z > dmin) & (z <= dmax)
+    far = np.zeros(z.shape, bool)
+    pad = np.pad(z, 1, constant_values=np.nan)
+    for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        zn = pad[1 + dv : 1 + dv + z.shape[0], 1 + du : 1 + du + z.shape[1]]
+        with np.errstate(invalid="ignore"):
+            far |= (zn > dmin) & (zn <= dmax) & (z > zn) & (z - zn > t * zn)
+    expected = ok & ~far
+    np.testing.assert_array_equal(_kernels._keep_mask(depth, dmin, dmax, t, 1), expected)
+    assert 0.2 < expected.mean() < 0.6
+
+
 def test_points_do_not_depend_on_asking_for_normals() -> None:
     """Live clouds (no normals) and references (normals) sample a depth image alike."""
     cam = d405("480x270")

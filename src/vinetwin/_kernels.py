@@ -240,6 +240,12 @@ def d405_axial(
 
 
 # ----------------------------------------------------------------------------- fused perception
+@nb.njit(cache=True, nogil=True, inline="always")
+def _nearer(zn: float, dmin: float, lim: float) -> bool:
+    """A valid neighbour depth (above dmin) nearer than `lim` (NaN: False)."""
+    return zn > dmin and zn < lim
+
+
 @nb.njit(cache=True, nogil=True)
 def _keep_rows(
     depth: np.ndarray,
@@ -250,24 +256,39 @@ def _keep_rows(
     v0: int,
     v1: int,
 ) -> None:
-    """Rows v0..v1 of `_keep_mask` into keep."""
+    """Rows v0..v1 of `_keep_mask` into keep. A pixel at depth z is the far side of a jump to
+    a valid 4-neighbour at zn when z - zn > edge_threshold * zn, that is zn < z / (1 +
+    edge_threshold) (zn is then also below dmax); interior pixels test their four neighbours
+    without bounds checks."""
     H, W = depth.shape
+    inv = 1.0 / (1.0 + edge_threshold) if edge_threshold > 0 else 0.0
     for v in range(v0, v1):
+        inner = 0 < v < H - 1
         for u in range(W):
-            z = depth[v, u]
+            z = np.float64(depth[v, u])
             if not (z > dmin and z <= dmax):  # also rejects NaN
                 continue
+            if edge_threshold <= 0:
+                keep[v, u] = True
+                continue
+            lim = z * inv
+            if inner and 0 < u < W - 1:
+                keep[v, u] = not (
+                    _nearer(depth[v - 1, u], dmin, lim)
+                    or _nearer(depth[v + 1, u], dmin, lim)
+                    or _nearer(depth[v, u - 1], dmin, lim)
+                    or _nearer(depth[v, u + 1], dmin, lim)
+                )
+                continue
             ok = True
-            if edge_threshold > 0:
-                # drop the far side of a jump to any 4-neighbour
-                for k in range(4):
-                    vv = v + (-1 if k == 0 else (1 if k == 1 else 0))
-                    uu = u + (-1 if k == 2 else (1 if k == 3 else 0))
-                    if 0 <= vv < H and 0 <= uu < W:
-                        zn = depth[vv, uu]
-                        if zn > dmin and zn <= dmax and z > zn and z - zn > edge_threshold * zn:
-                            ok = False
-                            break
+            if v > 0 and _nearer(depth[v - 1, u], dmin, lim):
+                ok = False
+            if v < H - 1 and _nearer(depth[v + 1, u], dmin, lim):
+                ok = False
+            if u > 0 and _nearer(depth[v, u - 1], dmin, lim):
+                ok = False
+            if u < W - 1 and _nearer(depth[v, u + 1], dmin, lim):
+                ok = False
             keep[v, u] = ok
 
 
