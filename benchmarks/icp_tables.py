@@ -35,7 +35,8 @@ def main() -> None:
                 )
             print(f"| {run.get('twin', run.get('sample'))} | {1000 * t['voxel']:.0f} mm | "
                   f"{t['start']} | {t['points']} | " + " | ".join(cells) + " |")  # fmt: skip
-    print("\nServo cycle (perception + ICP + control), Hz; perception ms in brackets\n")
+    print("\nServo cycle (perception + ICP + control), Hz; in brackets perception ms and, tracking, "
+          "the share of frames the final ICP level alone aligned (runs that record it)\n")  # fmt: skip
     print("| vine | voxel | start | point-to-point | point-to-plane | symmetric | LM |")
     print("|---|---|---|---|---|---|---|")
     for run in runs:
@@ -51,7 +52,14 @@ def main() -> None:
                 if c["voxel"] == voxel and c.get("start", "warm") == start
             }
             cells = [
-                f"{by[v]['hz']:.0f} ({by[v]['perception_ms']:.1f})" for v in VARIANTS if v in by
+                f"{by[v]['hz']:.0f} ({by[v]['perception_ms']:.1f}"
+                + (
+                    f"; {100 * by[v]['tracked']:.0f}%)"
+                    if start == "tracking" and "tracked" in by[v]
+                    else ")"
+                )
+                for v in VARIANTS
+                if v in by
             ]
             print(
                 f"| {run.get('twin', run.get('sample'))} | {1000 * voxel:.0f} mm | {start} | "
