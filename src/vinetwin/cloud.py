@@ -9,8 +9,9 @@ into a pose error. Steps (the paper's, plus a cheap image-space filter):
    more than `edge_threshold` (relative) is dropped (the smeared silhouettes of thin canes);
 3. deprojection to camera-frame points;
 4. voxel-grid downsampling (`voxel_size`);
-5. statistical outlier removal (`sor_neighbors`, `sor_std_ratio`), after the voxel grid (far
-   cheaper than before it);
+5. outlier removal after the voxel grid (far cheaper than before it), by `outlier_rule`: the
+   radius rule (default: at least `radius_neighbors` others within `outlier_radius`), the
+   paper's statistical rule (`sor_neighbors`, `sor_std_ratio`) or none;
 6. normals (for point-to-plane and symmetric ICP), oriented towards the camera. They come from
    the organised depth image (central differences of neighbouring pixels) averaged per voxel,
    which is far cheaper than a neighbour search on the points and averages the noise of ~100
@@ -20,11 +21,12 @@ into a pose error. Steps (the paper's, plus a cheap image-space filter):
 The per-pixel and per-point loops are compiled (`vinetwin._kernels`, numba): steps 1-4 and the
 per-pixel normals run as one serial pass over the image (no per-pixel
 arrays), and step 5 finds each point's neighbours by a search of grid cells instead of a k-d
-tree: the points of the 27 cells around a cell are gathered once for all its points, and each
-point's k nearest are selected among them (exact: the same answer as the tree,
-`tests/test_cloud.py`; a point whose k-th neighbour may lie farther is searched alone in
-growing rings). The steps match Open3D's
-`voxel_down_sample` and `remove_statistical_outlier` (tests/test_cloud.py compares them).
+tree. The radius rule counts the points of the 27 cells around a point's cell; the statistical
+rule gathers them once for all the points of a cell and selects each point's k nearest among
+them (exact: the same answer as the tree, `tests/test_cloud.py`; a point whose k-th neighbour
+may lie farther is searched alone in growing rings). The steps match Open3D's
+`voxel_down_sample`, `remove_radius_outlier` and `remove_statistical_outlier`
+(tests/test_cloud.py compares them).
 """
 
 from __future__ import annotations
