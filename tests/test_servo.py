@@ -152,7 +152,7 @@ def test_steady_tracking_runs_the_final_level_alone_and_falls_back_when_it_moved
     slip = fr.make_pose(fr.so3_exp([0.0, 0.0, np.radians(0.1)]), [0.0, 0.0006, 0.0])
     base1 = base @ fr.make_pose(t=[0.001, 0.0, 0.0]) @ slip
     r1 = s.step_depth(vine_views.depth(Tg @ D1, 101), 1 / 30, T_base_camera=base1)
-    assert r1.trusted and s.tracked_frames == 1, r1.reason
+    assert r1.trusted and r1.tracked and s.tracked_frames == 1, r1.reason
     assert r0.T_ref_cur is not None and r1.T_ref_cur is not None and r1.cloud is not None
     guess = kinematic_guess(r0.T_ref_cur, base, base1)
     full = s.icp.align(r1.cloud, guess)
@@ -162,7 +162,7 @@ def test_steady_tracking_runs_the_final_level_alone_and_falls_back_when_it_moved
     # the robot reports a 4 mm motion the camera did not make
     base2 = base1 @ fr.make_pose(t=[0.0, 0.004, 0.0])
     r2 = s.step_depth(vine_views.depth(Tg @ D1, 102), 2 / 30, T_base_camera=base2)
-    assert r2.trusted and s.tracked_frames == 1, r2.reason
+    assert r2.trusted and not r2.tracked and s.tracked_frames == 1, r2.reason
     assert r2.T_ref_cur is not None and fr.pose_error(r2.T_ref_cur, D1)[0] < 1e-3
 
 

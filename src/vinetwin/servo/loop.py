@@ -140,6 +140,7 @@ def cycle_record(c: Cycle, extra: dict[str, Any] | None = None) -> dict[str, Any
         "trusted": r.trusted,
         "reason": r.reason,
         "at_goal": r.at_goal,
+        "tracked": r.tracked,
         "twist": r.twist.tolist(),
         "sent": c.sent.tolist(),
         "overrun": c.overrun,

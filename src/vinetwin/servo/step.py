@@ -73,6 +73,8 @@ class StepResult:
     """The frame's cloud after perception (`step_depth`), camera frame."""
     reacquired: bool = False
     """Trusted by the wide search after a streak of refusals (not by tracking)."""
+    tracked: bool = False
+    """Aligned by ICP's final level alone (steady tracking), not the full schedule."""
     lost: bool = False
     """The servo lost the vine (refusals for `SafetyConfig.lost_after`) and stopped for good;
     the loop ends."""
@@ -327,7 +329,9 @@ class Servo:
             float(np.linalg.norm(e[:3])) <= self.goal_translation
             and float(np.linalg.norm(e[3:])) <= self.goal_rotation
         )
-        return StepResult(twist, True, "", T, e, at_goal, r, timings, reacquired=reacquired)
+        return StepResult(
+            twist, True, "", T, e, at_goal, r, timings, reacquired=reacquired, tracked=tracked
+        )
 
     # ------------------------------------------------------------------ helpers
     def _judge(
