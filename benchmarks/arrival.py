@@ -13,12 +13,12 @@ refused (by reason), median seconds.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from results_file import write_json
 
 from vinetwin import _lazy
 from vinetwin.frames import make_pose, pose_error, so3_exp
@@ -91,10 +91,7 @@ def main() -> None:
     print(f"twin {twin.name}: {len(twin.poses)} poses, {args.trials} arrivals per level; success "
           f"within {1000 * SUCCESS[0]:.0f} mm / {SUCCESS[1]} rad")  # fmt: skip
     rows = run(twin, args.trials, args.seed)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"twin": twin.name, "levels": rows}, indent=1))
-        print(f"wrote {args.json}")
+    write_json(args.json, {"twin": twin.name, "levels": rows})
 
 
 if __name__ == "__main__":

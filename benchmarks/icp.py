@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import statistics
 import time
@@ -46,6 +45,7 @@ from typing import Any
 
 import numba
 import numpy as np
+from results_file import write_json
 
 from vinetwin import _lazy
 from vinetwin import frames as fr
@@ -461,10 +461,7 @@ def main() -> None:
             f"{c['perception_ms']:11.2f} {c['icp_ms']:6.2f} {c['control_ms']:8.3f} "
             f"{c['tracked']:7.2f}"
         )
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=1))
-        print(f"wrote {args.json}")
+    write_json(args.json, results)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import statistics
 import time
@@ -30,6 +29,7 @@ from typing import Any
 
 import numpy as np
 from render import open3d_chain  # benchmarks/render.py: the same chain written with Open3D
+from results_file import write_json
 
 from vinetwin import frames as fr
 from vinetwin.cloud import OUTLIER_RULES, PerceptionConfig, outlier_mask, perceive
@@ -154,10 +154,7 @@ def main() -> None:
                 print(f"{r['rule']:12} {r['perception_ms']:8.2f} {r['outlier_ms']:7.2f} "
                       f"{r['open3d_ms']:9.2f} {r['points']:6d} {acc}")  # fmt: skip
             results["tables"].append({"twin": twin.name, "voxel": voxel, "views": n, "rows": rows})
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=1))
-        print(f"wrote {args.json}")
+    write_json(args.json, results)
 
 
 if __name__ == "__main__":

@@ -12,13 +12,13 @@ measured ground truth). Then structure-from-motion poses (pycolmap) on the 100-f
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from results_file import write_json
 
 from vinetwin import _lazy
 from vinetwin.capture.folder import Capture, read_capture
@@ -117,10 +117,7 @@ def main() -> None:
                 f"{s['seconds']:.1f} s; chamfer {s['chamfer_mm']:.2f} mm, F@2mm {s['fscore@2mm']:.3f}, "
                 f"F@5mm {s['fscore@5mm']:.3f}"
             )
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=1))
-        print(f"wrote {args.json}")
+    write_json(args.json, rows)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ with the default backend (issue: speed).
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import statistics
 import tempfile
@@ -26,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from results_file import write_json
 
 from vinetwin import _lazy
 from vinetwin import frames as fr
@@ -207,11 +207,7 @@ def main() -> None:
             f"{exp['seconds']:.1f} s = {exp['refs_per_s']:.1f} references/s ({exp['failed']} failed); "
             f"re-run skipped {exp['rerun_skipped']} in {exp['rerun_seconds']:.1f} s"
         )
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        out = {"twin": twin.name, "per_reference": rows, "export": exports}
-        args.json.write_text(json.dumps(out, indent=1))
-        print(f"wrote {args.json}")
+    write_json(args.json, {"twin": twin.name, "per_reference": rows, "export": exports})
 
 
 if __name__ == "__main__":

@@ -27,7 +27,6 @@ them. Timings are of this machine, shared with whatever else runs on it.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import socket
 import statistics
@@ -38,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from results_file import write_json
 
 from vinetwin.web.browser import CHROMIUM, launch
 
@@ -170,10 +170,7 @@ def main() -> None:
         p90 = "-" if s["p90"] is None else f"{s['p90']:.0f}"
         print(f"{k:10} {med:>10} {p90:>8}")
     print(f"the page draws a frame every {out['browser_frame_ms']:.0f} ms (median)")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=1))
-        print(f"wrote {args.json}")
+    write_json(args.json, out)
 
 
 if __name__ == "__main__":
