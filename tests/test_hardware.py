@@ -505,7 +505,8 @@ def test_servo_command_in_simulation_and_its_errors(
     out = capsys.readouterr().out
     assert "trusted" in out and str(log) in out
     header, cycles, summary = read_log(log)
-    assert header["robot"] == "mujoco" and len(cycles) > 10  # 3 s at up to 30 Hz; fewer on busy cores
+    # 3 s at up to 30 Hz; fewer on busy cores
+    assert header["robot"] == "mujoco" and len(cycles) > 10
     assert summary["sent"] > 0
     first, last = cycles[0]["true_error"], cycles[-1]["true_error"]
     assert last[0] < 0.5 * first[0]  # moving towards the goal
