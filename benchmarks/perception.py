@@ -28,11 +28,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from icp import STARTS
 from render import open3d_chain  # benchmarks/render.py: the same chain written with Open3D
 from results_file import write_json
 
 from vinetwin import frames as fr
-from vinetwin.cloud import OUTLIER_RULES, PerceptionConfig, outlier_mask, perceive
+from vinetwin.cloud import ICP_VARIANTS, OUTLIER_RULES, PerceptionConfig, outlier_mask, perceive
 from vinetwin.registration.icp import ICP, ICPConfig
 from vinetwin.render.backends import get_backend
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
@@ -40,8 +41,7 @@ from vinetwin.twin import Twin
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "samples" / "vine_bilateral.twin"
-VARIANTS = ("point_to_point", "lm", "point_to_plane", "symmetric")
-WARM = (0.02, 3.0)  # benchmarks/icp.py's warm start: 2 cm / 3 deg
+WARM = STARTS["warm"]  # benchmarks/icp.py's warm start: 2 cm / 3 deg
 
 
 def _median_ms(repeats: int, fn: Any, *args: Any) -> float:
@@ -79,13 +79,13 @@ def run_rule(
 ) -> dict[str, Any]:
     cam = twin.camera
     t_chain, t_rule, t_o3d, npts = [], [], [], []
-    errors: dict[str, list[float]] = {v: [] for v in VARIANTS}
-    icp_ms: dict[str, list[float]] = {v: [] for v in VARIANTS}
+    errors: dict[str, list[float]] = {v: [] for v in ICP_VARIANTS}
+    icp_ms: dict[str, list[float]] = {v: [] for v in ICP_VARIANTS}
     for view in data:
         reference = perceive(view["reference"], cam, per)
         icps = {
             v: ICP(reference, ICPConfig(variant=v), camera=cam, max_depth=per.max_depth)
-            for v in VARIANTS
+            for v in ICP_VARIANTS
         }
         for depth, D in view["currents"]:
             cloud = perceive(depth, cam, per)
@@ -108,7 +108,7 @@ def run_rule(
         "icp": {},
     }
     row["ratio_to_open3d"] = row["perception_ms"] / row["open3d_ms"]
-    for v in VARIANTS:
+    for v in ICP_VARIANTS:
         e = np.array(errors[v])
         row["icp"][v] = {
             "t_mm_median": float(np.median(e)),
@@ -143,13 +143,13 @@ def main() -> None:
                 rows.append(run_rule(twin, data, per, args.repeats))
             n = sum(len(v["currents"]) for v in data)
             print(f"\n{twin.name}, voxel {1000 * voxel:.0f} mm, {n} current views")
-            head = " ".join(f"{v[:14]:>14}" for v in VARIANTS)
+            head = " ".join(f"{v[:14]:>14}" for v in ICP_VARIANTS)
             print(f"{'rule':12} {'chain ms':>8} {'rule ms':>7} {'Open3D ms':>9} {'points':>6} "
                   f"{head}   (ICP error median/p90 mm)")  # fmt: skip
             for r in rows:
                 acc = " ".join(
                     f"{r['icp'][v]['t_mm_median']:6.3f}/{r['icp'][v]['t_mm_p90']:7.3f}"
-                    for v in VARIANTS
+                    for v in ICP_VARIANTS
                 )
                 print(f"{r['rule']:12} {r['perception_ms']:8.2f} {r['outlier_ms']:7.2f} "
                       f"{r['open3d_ms']:9.2f} {r['points']:6d} {acc}")  # fmt: skip

@@ -66,8 +66,8 @@ class PerceptionConfig(JsonFields):
     point with at least `radius_neighbors` others within `outlier_radius` (PCL's and Open3D's
     radius outlier removal), "statistical" applies Open3D's statistical rule (`sor_neighbors`,
     `sor_std_ratio`), "none" keeps every point. The radius rule is the default: on the views
-    of three vines it gives the statistical rule's ICP accuracy at a tenth of its time
-    (`benchmarks/perception.py`)."""
+    of four vines it gives the statistical rule's ICP accuracy, the rule itself in a tenth of
+    the statistical rule's time (`benchmarks/perception.py`, `docs/render.md`)."""
     outlier_radius: float = 0.006
     """Radius outlier removal: the radius (m)."""
     radius_neighbors: int = 2
