@@ -448,3 +448,30 @@ def test_compiled_d405_model_reproduces_the_numpy_formulation(cfg: SensorConfig)
         ref = _d405_numpy(clean, twin.camera, np.random.default_rng(5), cfg)
         assert np.array_equal(ours, ref)
         assert (ours > 0).sum() > 1000
+
+
+@pytest.mark.parametrize(("shape", "w"), [((37, 53), 1), ((40, 31), 2), ((25, 1), 1), ((1, 30), 3)])
+def test_silhouette_search_matches_scipy_window_filters(shape: tuple[int, int], w: int) -> None:
+    """`_kernels.d405_edges` (separable vectorised window extremes) finds the pixels, nearest
+    and farthest depths that scipy's clipped window filters give, on random depth with holes,
+    jumps and images one pixel wide."""
+    from scipy import ndimage
+
+    from vinetwin import _kernels
+
+    rng = np.random.default_rng(sum(shape) + w)
+    d = rng.uniform(0.1, 0.3, shape).astype(np.float32)
+    d[rng.random(shape) < 0.3] = 0.0
+    d[rng.random(shape) < 0.1] *= 1.5
+    ev, eu, nv, fv = _kernels.d405_edges(d, w, np.float32(0.05))
+    size = 2 * w + 1
+    near = ndimage.minimum_filter(np.where(d > 0, d, np.inf), size, mode="constant", cval=np.inf)
+    far = ndimage.maximum_filter(d, size, mode="constant", cval=0)
+    holes = ndimage.maximum_filter(d <= 0, size, mode="constant", cval=False)
+    ok = np.isfinite(near)
+    rv, ru = np.nonzero(ok & (holes | ((far - near) > np.float32(0.05) * np.where(ok, near, 1))))
+    assert len(rv) > 0
+    np.testing.assert_array_equal(ev, rv)
+    np.testing.assert_array_equal(eu, ru)
+    np.testing.assert_array_equal(nv, near[rv, ru])
+    np.testing.assert_array_equal(fv, far[rv, ru])

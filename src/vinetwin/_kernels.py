@@ -123,6 +123,61 @@ def voxel_grid(
 
 
 # ----------------------------------------------------------------------------- D405 model
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _min3_rows(src: np.ndarray, dst: np.ndarray, sign: np.float32) -> None:
+    """dst = the minimum of sign * src over each pixel's row neighbours u-1..u+1 (clipped at
+    the border). Reads one array and writes another, so the loop vectorises (the inputs hold
+    no NaN: the D405 model zeroes them first)."""
+    H, W = src.shape
+    for v in range(H):
+        a, o = src[v], dst[v]
+        if W == 1:
+            o[0] = a[0] * sign
+            continue
+        o[0] = min(a[0] * sign, a[1] * sign)
+        for u in range(1, W - 1):
+            o[u] = min(min(a[u - 1] * sign, a[u] * sign), a[u + 1] * sign)
+        o[W - 1] = min(a[W - 2] * sign, a[W - 1] * sign)
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _min3_cols(src: np.ndarray, dst: np.ndarray) -> None:
+    """dst = the minimum of src over each pixel's column neighbours v-1..v+1 (clipped)."""
+    H, W = src.shape
+    for v in range(H):
+        a, b, c, o = src[max(v - 1, 0)], src[v], src[min(v + 1, H - 1)], dst[v]
+        for u in range(W):
+            o[u] = min(min(a[u], b[u]), c[u])
+
+
+@nb.njit(cache=True, nogil=True)
+def _window_min(a: np.ndarray, w: int, sign: np.float32) -> np.ndarray:
+    """The minimum of sign * a over each pixel's (2w+1)^2 window clipped at the border: w
+    passes of the 3-wide minimum along rows, then w along columns (a clipped window's minimum
+    is the 3-wide one's applied w times)."""
+    x, y = np.empty_like(a), np.empty_like(a)
+    _min3_rows(a, x, sign)
+    for _ in range(w - 1):
+        _min3_rows(x, y, np.float32(1.0))
+        x, y = y, x
+    for _ in range(w):
+        _min3_cols(x, y)
+        x, y = y, x
+    return x
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _edge_mask(lo: np.ndarray, neg_hi: np.ndarray, jump: np.float32, out: np.ndarray) -> None:
+    """Silhouette pixels from the window's minimum depth `lo` (0: a hole in it) and its
+    negated maximum: a surface in the window, and a hole or a relative range above `jump`."""
+    H, W = lo.shape
+    for v in range(H):
+        a, b, o = lo[v], neg_hi[v], out[v]
+        for u in range(W):
+            z, hi = a[u], -b[u]
+            o[u] = (hi > 0) & ((z <= 0) | (np.float32(hi - z) > np.float32(jump * z)))
+
+
 @nb.njit(cache=True, nogil=True)
 def d405_edges(
     depth: np.ndarray, w: int, jump: np.float32
@@ -130,42 +185,41 @@ def d405_edges(
     """The silhouette pixels of the D405 model, in row-major order: those whose (2w+1)^2
     window (clipped at the border) holds a surface and either an invalid pixel or a depth
     range above `jump` times its nearest depth. Returns their rows, columns, and the window's
-    nearest and farthest depths (float32)."""
+    nearest and farthest depths (float32). `depth` holds no NaN (0: invalid).
+
+    Separable window minimum and maximum over the whole image (branch-free, vectorised), then
+    the nearest valid depth searched again only for the silhouette pixels whose window holds a
+    hole: 3.3x faster than one branching pass per pixel (benchmarks in docs/results/speed.md)."""
     H, W = depth.shape
-    rnear = np.empty((H, W), np.float32)
-    rfar = np.empty((H, W), np.float32)
-    rhole = np.empty((H, W), np.bool_)
-    for v in range(H):  # separable: the rows' extremes first
-        for u in range(W):
-            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
-            for uu in range(max(0, u - w), min(W, u + w + 1)):
-                z = depth[v, uu]
-                if z > 0:
-                    if z < lo:
-                        lo = z
-                    if z > hi:
-                        hi = z
-                else:
-                    hole = True
-            rnear[v, u], rfar[v, u], rhole[v, u] = lo, hi, hole
-    ev = np.empty(H * W, np.int64)
-    eu = np.empty(H * W, np.int64)
-    nv = np.empty(H * W, np.float32)
-    fv = np.empty(H * W, np.float32)
+    lo = _window_min(depth, w, np.float32(1.0))
+    neg_hi = _window_min(depth, w, np.float32(-1.0))
+    mask = np.empty((H, W), np.bool_)
+    _edge_mask(lo, neg_hi, jump, mask)
+    n = 0
+    flat = mask.ravel()
+    for i in range(H * W):
+        n += flat[i]
+    ev = np.empty(n, np.int64)
+    eu = np.empty(n, np.int64)
+    nv = np.empty(n, np.float32)
+    fv = np.empty(n, np.float32)
     n = 0
     for v in range(H):
+        row = mask[v]
         for u in range(W):
-            lo, hi, hole = np.float32(np.inf), np.float32(0.0), False
-            for vv in range(max(0, v - w), min(H, v + w + 1)):
-                if rnear[vv, u] < lo:
-                    lo = rnear[vv, u]
-                if rfar[vv, u] > hi:
-                    hi = rfar[vv, u]
-                hole = hole or rhole[vv, u]
-            if lo < np.inf and (hole or np.float32(hi - lo) > np.float32(jump * lo)):
-                ev[n], eu[n], nv[n], fv[n] = v, u, lo, hi
-                n += 1
-    return ev[:n].copy(), eu[:n].copy(), nv[:n].copy(), fv[:n].copy()
+            if not row[u]:
+                continue
+            near = lo[v, u]
+            if not near > 0:  # a hole in the window: its nearest valid depth
+                near = np.float32(np.inf)
+                for vv in range(max(0, v - w), min(H, v + w + 1)):
+                    for uu in range(max(0, u - w), min(W, u + w + 1)):
+                        z = depth[vv, uu]
+                        if z > 0 and z < near:
+                            near = z
+            ev[n], eu[n], nv[n], fv[n] = v, u, near, -neg_hi[v, u]
+            n += 1
+    return ev, eu, nv, fv
 
 
 @nb.njit(cache=True, nogil=True)
