@@ -275,6 +275,34 @@ def test_a_corrupted_reference_is_rendered_again_and_refused_by_the_servo(twin_d
     assert len(reference_cloud(t, "p1").points) > 100
 
 
+def test_export_flushes_once_and_renders_again_what_a_power_loss_left_empty(
+    twin_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """References are written without an fsync each and flushed together at the end; a cloud
+    or sidecar a power loss left empty (what an unsynced file can become) is rendered again."""
+    import os
+
+    import vinetwin.render.export as export_mod
+    from vinetwin.render.export import export_references
+
+    calls = {"fsync": 0, "sync": 0}
+    real_fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: calls.__setitem__("fsync", calls["fsync"] + 1))
+    monkeypatch.setattr(
+        export_mod, "sync_to_disk", lambda: calls.__setitem__("sync", calls["sync"] + 1)
+    )
+    t = Twin.load(twin_dir)
+    assert export_references(t, ["p1", "p2"], workers=1).count("rendered") == 2
+    assert calls == {"fsync": 0, "sync": 1}
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    good = (t.references_dir / "p2.pcd").read_bytes()
+    (t.references_dir / "p2.pcd").write_bytes(b"")
+    (t.references_dir / "p1.json").write_bytes(b"")
+    again = export_references(t, ["p1", "p2"], workers=1)
+    assert [r.status for r in again.results] == ["rendered", "rendered"]
+    assert (t.references_dir / "p2.pcd").read_bytes() == good
+
+
 # ----------------------------------------------------------------------------- 10 minor
 def test_minor_messages_name_the_right_thing(twin_dir: Path, tmp_path: Path) -> None:
     from vinetwin.mesh import check_mesh_arrays

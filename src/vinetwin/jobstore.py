@@ -28,12 +28,16 @@ class JobStore:
         format_key: str = "format",
         digest_key: str = "digest",
         indent: int | None = 1,
+        sync: bool = True,
     ) -> None:
         self.folder = Path(folder)
         self.version = version
         self.format_key = format_key
         self.digest_key = digest_key
         self.indent = indent
+        self.sync = sync
+        """False: results are written without fsync (`files.atomic_write_bytes`); for stores
+        whose records are checked before use and flushed by the caller."""
 
     def path(self, name: str) -> Path:
         return self.folder / f"{name}.json"
@@ -75,5 +79,5 @@ class JobStore:
         """Writes the result (atomically) with its digest; returns it as a reader reads it."""
         record = {**result, self.format_key: self.version, self.digest_key: digest}
         text = json.dumps(record, indent=self.indent, default=json_default)
-        atomic_write_text(self.path(name), text + "\n")
+        atomic_write_text(self.path(name), text + "\n", sync=self.sync)
         return json.loads(text)

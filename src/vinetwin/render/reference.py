@@ -67,8 +67,9 @@ def dense_cloud(
 
 
 # ----------------------------------------------------------------------------- files
-def write_ply(path: Path, cloud: Cloud) -> None:
-    """Binary little-endian PLY with float32 x y z (and nx ny nz when the cloud has normals)."""
+def write_ply(path: Path, cloud: Cloud, *, sync: bool = True) -> None:
+    """Binary little-endian PLY with float32 x y z (and nx ny nz when the cloud has normals);
+    `sync` as in `files.atomic_write_bytes`."""
     names = ["x", "y", "z"] + (["nx", "ny", "nz"] if cloud.normals is not None else [])
     data = cloud.points if cloud.normals is None else np.hstack([cloud.points, cloud.normals])
     header = (
@@ -78,12 +79,13 @@ def write_ply(path: Path, cloud: Cloud) -> None:
         + "end_header\n"
     )
     atomic_write_bytes(
-        path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes()
+        path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes(), sync=sync
     )
 
 
-def write_pcd(path: Path, cloud: Cloud) -> None:
-    """PCL's PCD v0.7, binary, fields x y z (normal_x normal_y normal_z), viewpoint at origin."""
+def write_pcd(path: Path, cloud: Cloud, *, sync: bool = True) -> None:
+    """PCL's PCD v0.7, binary, fields x y z (normal_x normal_y normal_z), viewpoint at origin;
+    `sync` as in `files.atomic_write_bytes`."""
     fields = ["x", "y", "z"] + (
         ["normal_x", "normal_y", "normal_z"] if cloud.normals is not None else []
     )
@@ -99,7 +101,7 @@ def write_pcd(path: Path, cloud: Cloud) -> None:
         f"WIDTH {len(cloud)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(cloud)}\nDATA binary\n"
     )
     atomic_write_bytes(
-        path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes()
+        path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes(), sync=sync
     )
 
 
