@@ -95,6 +95,8 @@ def _nan_pose(d: dict) -> None:
             TwinFieldError,
             "perception.outlier_rule",
         ),
+        (lambda d: d["perception"].update(decimation=0), TwinFieldError, "perception.decimation"),
+        (lambda d: d["perception"].update(decimation=1.5), TwinFieldError, "perception.decimation"),
         (lambda d: d.update(format="other"), TwinFieldError, "'format'"),
     ],
 )

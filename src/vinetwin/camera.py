@@ -180,6 +180,19 @@ class CameraModel(JsonFields):
             cy=(self.cy + 0.5) * sy - 0.5,
         )
 
+    def decimated(self, n: int) -> CameraModel:
+        """The camera of `depth[::n, ::n]`: pixel (u, v) of it is pixel (n u, n v) of this one,
+        so each deprojects to the same ray (not `scaled`, which resamples the whole image)."""
+        return dataclasses.replace(
+            self,
+            width=(self.width + n - 1) // n,
+            height=(self.height + n - 1) // n,
+            fx=self.fx / n,
+            fy=self.fy / n,
+            cx=self.cx / n,
+            cy=self.cy / n,
+        )
+
     @classmethod
     def from_realsense(
         cls, intrinsics: Any, depth_scale: float = D405_DEPTH_UNIT_M, name: str = "realsense"

@@ -452,6 +452,9 @@ class Twin:
                         "perception.outlier_rule",
                         f"must be one of {', '.join(OUTLIER_RULES)}, got {val!r}",
                     )
+            elif key == "decimation":
+                if isinstance(val, bool) or not isinstance(val, int) or not 1 <= val <= 8:
+                    raise f.fail("perception.decimation", f"must be an integer 1-8, got {val!r}")
             elif key in {fl for fl in PerceptionConfig.__dataclass_fields__}:
                 f.number(perc_data, key, "perception.")
                 if val < 0:
