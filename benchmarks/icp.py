@@ -26,10 +26,11 @@ point-to-plane). Then the full servo cycle at each voxel: perception chain + ICP
 two starts: tracking (the servo's steady state: the frame after a trusted one, its kinematic
 prediction 2 mm / 0.5 deg off, a frame's motion at the speed limits; the servo then tries ICP's
 final level alone, and the JSON's `tracked` is the share of frames it kept) and warm (a first
-frame 2 cm / 3 deg off, after a disturbance: the full schedule).
+frame 2 cm / 3 deg off, after a disturbance: the full schedule). `--decimation N` runs every
+cloud through the chain with `PerceptionConfig.decimation` N (default: the twin's).
 
     .venv/bin/python benchmarks/icp.py [--twin TWIN] [--trials 4] [--quick] [--json out.json]
-        [--association tree]
+        [--association tree] [--decimation N]
 """
 
 from __future__ import annotations
@@ -397,6 +398,10 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="write the figures here")
     ap.add_argument("--twin", type=Path, default=SAMPLE, help="twin folder (default: the sample)")
     ap.add_argument(
+        "--decimation", type=int, default=None,
+        help="the perception chain's decimation for every cloud of the run (default: the twin's)",
+    )  # fmt: skip
+    ap.add_argument(
         "--association", choices=ASSOCIATIONS, default=None,
         help="our ICP's association (default: ICPConfig's, projective at the fine levels); "
         "tree: the exact k-d tree at every level, to compare",
@@ -405,6 +410,8 @@ def main() -> None:
     if args.quick:
         args.trials, args.repeats = 1, 1
     twin = Twin.load(args.twin)
+    if args.decimation is not None:
+        twin.perception = dataclasses.replace(twin.perception, decimation=args.decimation)
     rng = np.random.default_rng(7)
     voxels = (0.004,) if args.quick else (0.004, 0.002)
     print(
@@ -416,6 +423,7 @@ def main() -> None:
         "twin": twin.name,
         "trials": args.trials,
         "association": args.association or ICPConfig().association,
+        "decimation": twin.perception.decimation,
         "tables": [],
         "cycles": [],
     }

@@ -13,8 +13,11 @@ alone, the median number of points, the same chain written with Open3D (create_f
 voxel_down_sample, the same outlier rule, estimate_normals) on the same images, and per ICP
 variant the median and 90th-percentile translation error (mm) against the true offset.
 
+`--decimation 1 2` compares `PerceptionConfig.decimation` values instead of the rules (each row
+one decimation, with the twin's rule), reference and current clouds alike.
+
     .venv/bin/python benchmarks/perception.py [--twin TWIN ...] [--trials 3] [--quick]
-        [--json out.json]
+        [--decimation N ...] [--json out.json]
 """
 
 from __future__ import annotations
@@ -101,6 +104,7 @@ def run_rule(
                 errors[v].append(1000 * fr.pose_error(r.T_ref_cur, D)[0])
     row: dict[str, Any] = {
         "rule": per.outlier_rule,
+        "decimation": per.decimation,
         "perception_ms": statistics.median(t_chain),
         "outlier_ms": statistics.median(t_rule),
         "open3d_ms": statistics.median(t_o3d),
@@ -125,6 +129,9 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=3, help="current views per pruning pose")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per image (median)")
     ap.add_argument("--quick", action="store_true", help="1 trial, 1 repeat, 4 mm only")
+    ap.add_argument(
+        "--decimation", type=int, nargs="+", help="compare these decimations (twin's rule)"
+    )
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
     if args.quick:
@@ -138,20 +145,26 @@ def main() -> None:
         data = views(twin, args.trials, np.random.default_rng(7))
         for voxel in voxels:
             rows = []
-            for rule in OUTLIER_RULES:
-                per = dataclasses.replace(twin.perception, voxel_size=voxel, outlier_rule=rule)
-                rows.append(run_rule(twin, data, per, args.repeats))
+            if args.decimation:
+                for dec in args.decimation:
+                    per = dataclasses.replace(twin.perception, voxel_size=voxel, decimation=dec)
+                    rows.append(run_rule(twin, data, per, args.repeats))
+            else:
+                for rule in OUTLIER_RULES:
+                    per = dataclasses.replace(twin.perception, voxel_size=voxel, outlier_rule=rule)
+                    rows.append(run_rule(twin, data, per, args.repeats))
             n = sum(len(v["currents"]) for v in data)
             print(f"\n{twin.name}, voxel {1000 * voxel:.0f} mm, {n} current views")
             head = " ".join(f"{v[:14]:>14}" for v in ICP_VARIANTS)
-            print(f"{'rule':12} {'chain ms':>8} {'rule ms':>7} {'Open3D ms':>9} {'points':>6} "
+            print(f"{'rule/decim.':12} {'chain ms':>8} {'rule ms':>7} {'Open3D ms':>9} {'points':>6} "
                   f"{head}   (ICP error median/p90 mm)")  # fmt: skip
             for r in rows:
                 acc = " ".join(
                     f"{r['icp'][v]['t_mm_median']:6.3f}/{r['icp'][v]['t_mm_p90']:7.3f}"
                     for v in ICP_VARIANTS
                 )
-                print(f"{r['rule']:12} {r['perception_ms']:8.2f} {r['outlier_ms']:7.2f} "
+                name = f"{r['rule']} /{r['decimation']}"
+                print(f"{name:12} {r['perception_ms']:8.2f} {r['outlier_ms']:7.2f} "
                       f"{r['open3d_ms']:9.2f} {r['points']:6d} {acc}")  # fmt: skip
             results["tables"].append({"twin": twin.name, "voxel": voxel, "views": n, "rows": rows})
     write_json(args.json, results)
