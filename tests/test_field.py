@@ -339,3 +339,25 @@ def test_capture_around_the_poses_looks_at_their_cut_points(sample_twin_dir: Pat
         np.testing.assert_allclose(p, [0, 0, 0.3], atol=1e-9)
         axis = np.asarray(pose.T_vine_camera)[:3, 2]
         assert np.arccos(np.clip(axis @ T[:3, 2], -1, 1)) <= 0.75
+
+
+def test_a_field_twin_that_missed_the_pose_is_refused_by_name() -> None:
+    """A rebuilt twin that shows nothing at the pose's view (a capture that missed that part of
+    a large vine) is refused with the fix named, instead of every run stopping "lost the vine";
+    one that shows the same surface passes (coverage 1)."""
+    import trimesh
+
+    from vinetwin.errors import VinetwinError
+    from vinetwin.sim.config import FieldProfile
+    from vinetwin.sim.field import check_field_twin_view, view_coverage
+
+    cam = d405("848x480")
+    here = trimesh.creation.box((0.2, 0.2, 0.01), fr.make_pose(t=[0, 0, 0.2]))
+    elsewhere = trimesh.creation.box((0.2, 0.2, 0.01), fr.make_pose(t=[1.0, 0, 0.2]))
+    both = trimesh.util.concatenate([here, elsewhere])
+    T = np.eye(4)
+    assert view_coverage(both, here, cam, T) == pytest.approx(1.0)
+    assert view_coverage(both, elsewhere, cam, T) == 0.0
+    check_field_twin_view(both, here, cam, FieldProfile(), "p1", T)
+    with pytest.raises(VinetwinError, match=r"0% .* pose 'p1'.*\"twin_trajectory\": \"poses\""):
+        check_field_twin_view(both, elsewhere, cam, FieldProfile(), "p1", T)

@@ -138,6 +138,12 @@ def plan(twin: Twin, cfg: CampaignConfig, cache: Path | None = None) -> list[_Jo
         from vinetwin.sim.field import reconstructed_twin
 
         mesh, _ = reconstructed_twin(twin, profile, cfg.seed, cache or twin.root / "field_twins")
+        from vinetwin.mesh import load_mesh
+        from vinetwin.sim.field import check_field_twin_view
+
+        check_field_twin_view(
+            twin.load_mesh(), load_mesh(mesh), twin.camera, profile, pose.id, goal
+        )
         rebuilt = {"mesh_path": str(mesh), "mesh_sha256": file_sha256(mesh)}
     robot = None if cfg.sim == "kinematic" else cfg.robot
     starts = []

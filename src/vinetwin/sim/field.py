@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin.camera import CameraModel
+from vinetwin.errors import VinetwinError
 from vinetwin.files import atomic_write_json, file_sha256, json_sha256
 from vinetwin.frames import Array, make_pose, so3_exp
 from vinetwin.render.sensor import SensorConfig
@@ -128,6 +129,56 @@ def registration_error(profile: FieldProfile, default: tuple[float, float]) -> t
 
 
 # ----------------------------------------------------------------------------- the twin source
+#: A rebuilt twin that shows less than this share of the true vine's pixels at a pose's view has
+#: missed that part of the vine (`view_coverage`): its reference would be empty or a fragment.
+MIN_VIEW_COVERAGE = 0.1
+
+
+def view_coverage(
+    true_mesh: Any, rebuilt_mesh: Any, camera: CameraModel, T_vine_camera: Any
+) -> float:
+    """The rebuilt mesh's valid depth pixels at the view over the true mesh's (Open3D ray
+    casting at a quarter of the resolution; 1.0 when the true mesh shows nothing either)."""
+    from vinetwin.render.backends import get_backend
+
+    small = camera.scaled(max(camera.width // 4, 1), max(camera.height // 4, 1))
+    counts = []
+    for m in (true_mesh, rebuilt_mesh):
+        backend = get_backend("open3d", m.vertices, m.faces, small)
+        try:
+            counts.append(int((backend.render(T_vine_camera) > 0).sum()))
+        finally:
+            backend.close()
+    return 1.0 if counts[0] == 0 else counts[1] / counts[0]
+
+
+def check_field_twin_view(
+    true_mesh: Any,
+    rebuilt_mesh: Any,
+    camera: CameraModel,
+    profile: FieldProfile,
+    pose_id: str,
+    T_vine_camera: Any,
+) -> None:
+    """Refuses a rebuilt twin that missed the pose's part of the vine (a capture swept over the
+    whole vine from one side can miss a large vine's poses): every run from it would otherwise
+    stop "lost the vine" on an empty reference."""
+    share = view_coverage(true_mesh, rebuilt_mesh, camera, T_vine_camera)
+    if share >= MIN_VIEW_COVERAGE:
+        return
+    hint = (
+        "capture around the pruning poses instead: --profile FILE, a JSON field profile with "
+        '"twin_trajectory": "poses"'
+        if profile.twin_trajectory == "grid"
+        else 'capture more frames: --profile FILE with a larger "twin_frames"'
+    )
+    raise VinetwinError(
+        f"the field twin rebuilt from a {profile.twin_trajectory!r} capture shows "
+        f"{100 * share:.0f}% of what the true vine shows at pose {pose_id!r} (less than "
+        f"{100 * MIN_VIEW_COVERAGE:.0f}%): its reference would be empty; {hint}"
+    )
+
+
 def reconstructed_twin(
     twin: Any, profile: FieldProfile, seed: int, cache: str | Path
 ) -> tuple[Path, dict[str, Any]]:

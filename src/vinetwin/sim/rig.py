@@ -179,10 +179,11 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
         from vinetwin.mesh import load_mesh
         from vinetwin.render.reference import pose_seed, render_reference
         from vinetwin.render.sensor import SensorConfig
-        from vinetwin.sim.field import reconstructed_twin
+        from vinetwin.sim.field import check_field_twin_view, reconstructed_twin
 
         path, _ = reconstructed_twin(twin, sim.profile, cfg.seed, twin.root / "field_twins")
         rebuilt = load_mesh(path)
+        check_field_twin_view(twin.load_mesh(), rebuilt, twin.camera, sim.profile, pose.id, goal)
         robot_mesh = rebuilt
         ref_backend = get_backend("open3d", rebuilt.vertices, rebuilt.faces, twin.camera)
         rendered = render_reference(
