@@ -117,3 +117,10 @@ def test_perception_benchmark_quick(tmp_path: Path) -> None:
         # the sample's warm starts converge with every rule (errors are in mm)
         assert r["icp"]["symmetric"]["t_mm_median"] < 1.0
     assert "Open3D ms" in proc.stdout
+    # --decimation compares PerceptionConfig.decimation values instead of the rules
+    _, dec = _quick("perception.py", tmp_path / "dec.json", "--quick", "--decimation", "1", "2")
+    (table,) = dec["tables"]
+    rows = table["rows"]
+    assert [r["decimation"] for r in rows] == [1, 2] and rows[0]["rule"] == rows[1]["rule"]
+    assert 0.5 * rows[0]["points"] < rows[1]["points"] < rows[0]["points"]
+    assert rows[1]["icp"]["symmetric"]["t_mm_median"] < 1.0
