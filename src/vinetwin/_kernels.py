@@ -195,10 +195,7 @@ def d405_edges(
     neg_hi = _window_min(depth, w, np.float32(-1.0))
     mask = np.empty((H, W), np.bool_)
     _edge_mask(lo, neg_hi, jump, mask)
-    n = 0
-    flat = mask.ravel()
-    for i in range(H * W):
-        n += flat[i]
+    n = np.count_nonzero(mask)
     ev = np.empty(n, np.int64)
     eu = np.empty(n, np.int64)
     nv = np.empty(n, np.float32)

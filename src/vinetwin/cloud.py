@@ -44,6 +44,8 @@ from vinetwin.errors import InputError
 
 #: ICP variants known to vinetwin (the paper's four).
 ICP_VARIANTS = ("point_to_point", "lm", "point_to_plane", "symmetric")
+#: The largest `PerceptionConfig.decimation` (every 8th pixel of a 848x480 image: 106x60).
+MAX_DECIMATION = 8
 #: Outlier rules of the perception chain (`PerceptionConfig.outlier_rule`).
 OUTLIER_RULES = ("radius", "statistical", "none")
 
@@ -94,8 +96,8 @@ class PerceptionConfig(JsonFields):
                 f"{', '.join(OUTLIER_RULES)}"
             )
         d = self.decimation
-        if isinstance(d, bool) or not isinstance(d, int) or not 1 <= d <= 8:
-            raise InputError(f"decimation must be an integer from 1 to 8, not {self.decimation!r}")
+        if isinstance(d, bool) or not isinstance(d, int) or not 1 <= d <= MAX_DECIMATION:
+            raise InputError(f"decimation must be an integer from 1 to {MAX_DECIMATION}, not {d!r}")
         if self.outlier_rule == "radius" and self.radius_neighbors > 0 and self.outlier_radius <= 0:
             raise InputError("outlier_radius must be positive for the radius outlier rule")
 

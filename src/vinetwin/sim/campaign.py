@@ -135,12 +135,10 @@ def plan(twin: Twin, cfg: CampaignConfig, cache: Path | None = None) -> list[_Jo
     rebuilt: dict[str, Any] = {}
     if profile.on("twin"):
         from vinetwin.files import file_sha256
-        from vinetwin.sim.field import reconstructed_twin
+        from vinetwin.mesh import load_mesh
+        from vinetwin.sim.field import check_field_twin_view, reconstructed_twin
 
         mesh, _ = reconstructed_twin(twin, profile, cfg.seed, cache or twin.root / "field_twins")
-        from vinetwin.mesh import load_mesh
-        from vinetwin.sim.field import check_field_twin_view
-
         check_field_twin_view(
             twin.load_mesh(), load_mesh(mesh), twin.camera, profile, pose.id, goal
         )

@@ -175,6 +175,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
     reference = reference_cloud(twin, pose.id)
     dense = dense_reference_for(twin, pose.id, cfg.servo)
     robot_mesh = None  # the twin the robot has, when it is not the true vine
+    mesh = twin.load_mesh()  # the true vine: the scene
     if sim.profile.on("twin"):  # the reference from a reconstructed twin; the scene stays true
         from vinetwin.mesh import load_mesh
         from vinetwin.render.reference import pose_seed, render_reference
@@ -183,7 +184,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
 
         path, _ = reconstructed_twin(twin, sim.profile, cfg.seed, twin.root / "field_twins")
         rebuilt = load_mesh(path)
-        check_field_twin_view(twin.load_mesh(), rebuilt, twin.camera, sim.profile, pose.id, goal)
+        check_field_twin_view(mesh, rebuilt, twin.camera, sim.profile, pose.id, goal)
         robot_mesh = rebuilt
         ref_backend = get_backend("open3d", rebuilt.vertices, rebuilt.faces, twin.camera)
         rendered = render_reference(
@@ -195,7 +196,6 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
             from vinetwin.servo.config import DENSE_FACTOR
 
             dense = dense_cloud(rendered.depth, twin.camera, twin.perception, DENSE_FACTOR)
-    mesh = twin.load_mesh()
     backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
     rng = np.random.default_rng(cfg.seed)
     cut = twin.cut_point(pose.cut_point).point

@@ -34,7 +34,7 @@ import numpy as np
 
 import vinetwin
 from vinetwin.camera import CameraModel, d405
-from vinetwin.cloud import ICP_VARIANTS, OUTLIER_RULES, PerceptionConfig
+from vinetwin.cloud import ICP_VARIANTS, MAX_DECIMATION, OUTLIER_RULES, PerceptionConfig
 from vinetwin.errors import (
     CameraError,
     InputError,
@@ -453,8 +453,15 @@ class Twin:
                         f"must be one of {', '.join(OUTLIER_RULES)}, got {val!r}",
                     )
             elif key == "decimation":
-                if isinstance(val, bool) or not isinstance(val, int) or not 1 <= val <= 8:
-                    raise f.fail("perception.decimation", f"must be an integer 1-8, got {val!r}")
+                if (
+                    isinstance(val, bool)
+                    or not isinstance(val, int)
+                    or not 1 <= val <= MAX_DECIMATION
+                ):
+                    raise f.fail(
+                        "perception.decimation",
+                        f"must be an integer 1-{MAX_DECIMATION}, got {val!r}",
+                    )
             elif key in {fl for fl in PerceptionConfig.__dataclass_fields__}:
                 f.number(perc_data, key, "perception.")
                 if val < 0:
