@@ -347,8 +347,8 @@ def test_mujoco_refuses_to_render_from_another_thread(sample: tuple[Twin, trimes
 
 
 def test_mujoco_renders_a_mesh_beyond_its_stl_limit() -> None:
-    """MuJoCo reads at most 200k faces from one STL file: a bigger vine is split into several,
-    and renders as Open3D does."""
+    """MuJoCo reads at most 200k faces from one STL file: a bigger vine goes in as pieces, and
+    renders as Open3D does."""
     from vinetwin.render.backends import MUJOCO_STL_FACES
 
     ball = trimesh.creation.icosphere(subdivisions=7, radius=0.05)  # 327,680 faces
@@ -363,6 +363,92 @@ def test_mujoco_renders_a_mesh_beyond_its_stl_limit() -> None:
     assert both.sum() > 20_000  # a 10 cm ball at 25 cm; a missing part would show below
     assert np.abs(a[both] - b[both]).max() < 1e-3
     assert ((a > 0) != (b > 0)).sum() < 0.01 * both.sum()
+
+
+def test_frustum_test_keeps_what_shows_and_drops_what_cannot() -> None:
+    """Boxes wholly behind one side of the view are dropped; every box holding a point that
+    projects into the image (or lies within the margin of it) is kept."""
+    from vinetwin.render.backends import frustum_hits
+
+    cam = d405("848x480")
+
+    def box(centre, half=0.01):  # type: ignore[no-untyped-def]
+        pick = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)])
+        return np.asarray(centre) + (2 * pick - 1) * half
+
+    cases = {  # camera at the origin looking along +z (OpenCV)
+        (0.0, 0.0, 0.3): 1,  # straight ahead
+        (0.0, 0.0, -0.3): 0,  # behind
+        (0.0, 0.0, 0.0): 1,  # around the camera: straddles the near plane
+        (1.0, 0.0, 0.3): 0,  # far right, beyond the image
+        (-1.0, 0.0, 0.3): 0,
+        (0.0, 1.0, 0.3): 0,
+        (0.0, -1.0, 0.3): 0,
+        (0.0, 0.0, 5.0): 1,  # far but in view (depth is not culled)
+    }
+    got = frustum_hits(np.stack([box(c) for c in cases]), np.eye(4), cam, 2.0)
+    assert got.tolist() == list(cases.values())
+    # random poses and points: a box around any point projecting into the image is kept
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        T = fr.random_pose(rng, 0.5, np.pi)
+        P = rng.uniform(-0.6, 0.6, (400, 3))
+        Pc = (P - T[:3, 3]) @ T[:3, :3]
+        u = cam.fx * Pc[:, 0] / Pc[:, 2] + cam.cx
+        v = cam.fy * Pc[:, 1] / Pc[:, 2] + cam.cy
+        shows = (
+            (Pc[:, 2] > 0.005)
+            & (u > -0.5)
+            & (u < cam.width - 0.5)
+            & (v > -0.5)
+            & (v < cam.height - 0.5)
+        )
+        hit = frustum_hits(np.stack([box(p, 0.002) for p in P]), T, cam, 2.0)
+        assert np.all(hit[shows] == 1)
+        assert hit[~shows].sum() < len(P)  # something is dropped
+
+
+def test_mujoco_culling_and_fused_readback_leave_the_image_unchanged(
+    sample: tuple[Twin, trimesh.Trimesh], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The MuJoCo scene draws only the vine pieces in the frustum and converts the depth buffer
+    in one compiled pass: the images are those of drawing every piece through
+    `mujoco.Renderer.render`, to the bit, on views around the sample's poses; and the views do
+    leave pieces out."""
+    from vinetwin.render import backends
+
+    twin, mesh = sample
+    mj = _backend_or_skip("mujoco", mesh.vertices, mesh.faces, twin.camera)
+    assert mj._fused is not None, "this MuJoCo's renderer should take the fused readback"
+    rng = np.random.default_rng(0)
+    poses = [p.T_vine_camera @ fr.random_pose(rng, 0.02, 0.1) for p in twin.poses for _ in range(2)]
+    fast, drawn = [], []
+    for T in poses:
+        fast.append(mj.render(T))
+        drawn.append(mj.drawn)
+    fused = mj._fused
+    mj._fused = None
+    monkeypatch.setattr(backends, "frustum_hits", lambda c, *a: np.ones(len(c)))
+    for T, a in zip(poses, fast, strict=True):
+        b = mj.render(T)
+        assert (b > 0).sum() > 10_000
+        np.testing.assert_array_equal(a, b)
+    mj._fused = fused
+    mj.close()
+    assert max(drawn) < len(mj._geoms) and len(mj._geoms) >= 8
+
+
+def test_stl_bytes_round_trip() -> None:
+    from vinetwin.render.backends import stl_bytes
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    import io
+
+    back = trimesh.load(
+        io.BytesIO(stl_bytes(ball.vertices, ball.faces)), file_type="stl", process=False
+    )
+    np.testing.assert_allclose(back.triangles, ball.triangles.astype(np.float32), atol=1e-7)
+    np.testing.assert_allclose(back.face_normals, ball.face_normals, atol=1e-5)
 
 
 def _d405_numpy(

@@ -70,6 +70,21 @@ def organised_points(
 
 
 @nb.njit(cache=True, nogil=True)
+def gl_reverse_z_depth(
+    buf: np.ndarray, c_coef: float, d_coef: float, far_cut: float, out: np.ndarray
+) -> None:
+    """An OpenGL reverse-Z depth buffer (bottom row first) to metric z-depth, top row first:
+    `d_coef / (b + c_coef)` in float64 (as `mujoco.Renderer` computes it), 0 at or beyond
+    `far_cut` (nothing hit); one pass instead of the renderer's float64 copy, flip and our mask."""
+    H, W = buf.shape
+    for v in range(H):
+        row = buf[H - 1 - v]
+        for u in range(W):
+            z = np.float32(d_coef / (np.float64(row[u]) + c_coef))
+            out[v, u] = z if np.float64(z) < far_cut else np.float32(0.0)
+
+
+@nb.njit(cache=True, nogil=True)
 def voxel_grid(
     points: np.ndarray,
     normals: np.ndarray,

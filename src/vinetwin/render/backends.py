@@ -23,7 +23,7 @@ from typing import Any, Literal, Protocol, cast
 import numpy as np
 import numpy.typing as npt
 
-from vinetwin import _lazy
+from vinetwin import _kernels, _lazy
 from vinetwin import conventions as cv
 from vinetwin.camera import CameraModel
 from vinetwin.errors import BackendUnavailable, InputError
@@ -52,6 +52,14 @@ vine (897k triangles) 7.1 against 9.5 s and 24.5 against 17.3 s."""
 
 MUJOCO_STL_FACES = 200_000
 """The most faces MuJoCo's STL reader takes in one file."""
+MUJOCO_CHUNK_FACES = 4096
+"""The MuJoCo scene holds the vine as spatially compact pieces of about this many faces, and
+each view draws only the pieces whose bounding box meets the camera's frustum: OpenGL (llvmpipe
+on a CPU) otherwise transforms every vertex of the vine per view, though a D405 15 cm from a
+cane sees 8-19% of it. The images are the same (`tests/test_render.py`); the time per view
+falls with the share culled (`benchmarks/render.py`)."""
+FRUSTUM_MARGIN_PX = 2.0
+"""Pieces within this many pixels outside the image are still drawn."""
 
 log = logging.getLogger(__name__)
 
@@ -240,9 +248,23 @@ class MujocoBackend:
         V, F = check_mesh(vertices, faces)
         self.camera = camera
         self._mujoco = mujoco
-        self.model = mujoco.MjModel.from_xml_string(*vine_scene_xml(V, F, camera))
+        pieces = mesh_pieces(F, V, MUJOCO_CHUNK_FACES)
+        self.model = mujoco.MjModel.from_xml_string(*vine_scene_xml(V, F, camera, pieces))
         self.data = mujoco.MjData(self.model)
         self._cam_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, "d405")
+        # each piece's bounding box (8 corners, vine frame) and geom, for the frustum test
+        lo = np.stack([V[F[idx]].reshape(-1, 3).min(axis=0) for idx in pieces])
+        hi = np.stack([V[F[idx]].reshape(-1, 3).max(axis=0) for idx in pieces])
+        pick = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)], dtype=bool)
+        self._corners = np.where(pick[None], hi[:, None], lo[:, None]).astype(np.float64)
+        self._geoms = np.array(
+            [
+                mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, f"vine{k}")
+                for k in range(len(pieces))
+            ]
+        )
+        self.drawn = len(pieces)
+        """Pieces the last view drew (of `len(self._geoms)`)."""
         try:
             self.renderer = mujoco.Renderer(self.model, camera.height, camera.width)
         except Exception as exc:
@@ -253,6 +275,28 @@ class MujocoBackend:
         self.renderer.enable_depth_rendering()
         self._far = float(self.model.vis.map.zfar * self.model.stat.extent)
         self._thread = threading.get_ident()
+        self._fused = self._fused_readback()
+        self._buf = np.empty((camera.height, camera.width), np.float32)
+
+    def _fused_readback(self) -> tuple[float, float] | None:
+        """The reverse-Z coefficients `mujoco.Renderer.render` converts the depth buffer with,
+        where this MuJoCo's renderer is the one they were read from (MuJoCo 3.3-4.x: its
+        rect, context and reverse-Z depth map); None: render through `Renderer.render`."""
+        r, mj = self.renderer, self._mujoco
+        if not all(hasattr(r, a) for a in ("_rect", "_mjr_context", "_scene", "_gl_context")):
+            return None
+        depth_map = getattr(mj, "mjtDepthMap", None)
+        ctx = r._mjr_context
+        if depth_map is None or getattr(ctx, "readDepthMap", None) != depth_map.mjDEPTH_ZEROFAR:
+            return None
+        if r._gl_context is None:  # no flip to undo (Filament): not what the kernel does
+            return None
+        extent = self.model.stat.extent
+        zfar = np.float32(self.model.vis.map.zfar * extent)
+        znear = np.float32(self.model.vis.map.znear * extent)
+        c = -(zfar + znear) / (zfar - znear)
+        d = -(np.float32(2) * zfar * znear) / (zfar - znear)
+        return float(np.float32(-0.5) * c - np.float32(0.5)), float(np.float32(-0.5) * d)
 
     def render(self, T_vine_camera: Any) -> DepthImage:
         if threading.get_ident() != self._thread:
@@ -261,37 +305,114 @@ class MujocoBackend:
                 "mujoco", "a MuJoCo renderer renders in the thread that created it, not another"
             )
         T = check_pose(T_vine_camera, "T_vine_camera")
+        visible = frustum_hits(self._corners, T, self.camera, FRUSTUM_MARGIN_PX)
+        self.model.geom_rgba[self._geoms, 3] = visible  # alpha 0: left out of the scene
+        self.drawn = int(np.count_nonzero(visible))
         pos, quat = cv.mujoco_camera_pos_quat(T)
         self.model.cam_pos[self._cam_id] = pos
         self.model.cam_quat[self._cam_id] = quat
         self._mujoco.mj_kinematics(self.model, self.data)
         self._mujoco.mj_camlight(self.model, self.data)
         self.renderer.update_scene(self.data, camera=self._cam_id)
-        depth = self.renderer.render()
-        depth = np.where(depth >= 0.999 * self._far, 0.0, depth)
-        return depth.astype(np.float32)
+        if self._fused is None:
+            depth = self.renderer.render()
+            return np.where(depth >= 0.999 * self._far, 0.0, depth).astype(np.float32)
+        # what Renderer.render does for depth, the conversion fused in one compiled pass
+        r, mj = self.renderer, self._mujoco
+        flags = r._scene.flags
+        flags[mj.mjtRndFlag.mjRND_SEGMENT] = flags[mj.mjtRndFlag.mjRND_IDCOLOR] = True
+        r._gl_context.make_current()
+        mj.mjr_render(r._rect, r._scene, r._mjr_context)
+        mj.mjr_readPixels(None, self._buf, r._rect, r._mjr_context)
+        out = np.empty_like(self._buf)
+        _kernels.gl_reverse_z_depth(self._buf, *self._fused, 0.999 * self._far, out)
+        return out
 
     def close(self) -> None:
         self.renderer.close()
 
 
+def mesh_pieces(
+    faces: npt.NDArray[np.uint32], vertices: npt.NDArray[np.float32], size: int
+) -> list[npt.NDArray[np.int64]]:
+    """The faces split into spatially compact pieces of at most `size` faces each (indices into
+    `faces`): halved at the median of their centres along the longest side, recursively."""
+    centres = vertices[faces].mean(axis=1) if len(faces) else np.zeros((0, 3), np.float32)
+    out: list[npt.NDArray[np.int64]] = []
+    todo = [np.arange(len(faces))]
+    while todo:
+        idx = todo.pop()
+        if len(idx) <= max(size, 1):
+            out.append(idx)
+            continue
+        c = centres[idx]
+        axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+        half = len(idx) // 2
+        order = np.argpartition(c[:, axis], half)
+        todo += [idx[order[:half]], idx[order[half:]]]
+    return out
+
+
+def frustum_hits(
+    corners: npt.NDArray[np.float64], T_vine_camera: Any, camera: CameraModel, margin_px: float
+) -> npt.NDArray[np.float64]:
+    """1 for each box (`corners`: (n, 8, 3), vine frame) that may show in the camera's image at
+    `T_vine_camera`, 0 for each that cannot: all its corners lie behind one side of the view
+    frustum (the near plane at 5 mm, the four image borders widened by `margin_px`). A box
+    straddling a side is kept, so nothing that shows is ever left out."""
+    T = np.asarray(T_vine_camera, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    P = (corners - t) @ R  # camera frame (OpenCV: x right, y down, z forward)
+    x, y, z = P[..., 0], P[..., 1], P[..., 2]
+    c = camera
+    u0, u1 = -0.5 - margin_px, c.width - 0.5 + margin_px
+    v0, v1 = -0.5 - margin_px, c.height - 0.5 + margin_px
+    # u = fx x / z + cx >= u0  <=>  fx x + (cx - u0) z >= 0 for z > 0 (and likewise)
+    outside = (
+        (z < 0.005).all(axis=1)
+        | (c.fx * x + (c.cx - u0) * z < 0).all(axis=1)
+        | (c.fx * x + (c.cx - u1) * z > 0).all(axis=1)
+        | (c.fy * y + (c.cy - v0) * z < 0).all(axis=1)
+        | (c.fy * y + (c.cy - v1) * z > 0).all(axis=1)
+    )
+    return np.asarray(~outside, dtype=np.float64)
+
+
+def stl_bytes(vertices: npt.NDArray[np.float32], faces: npt.NDArray[np.uint32]) -> bytes:
+    """Binary STL of the triangles `faces` (their unit normals, the vertices as float32)."""
+    tri = np.asarray(vertices, np.float32)[np.asarray(faces)]  # (n, 3, 3)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    rec = np.zeros(len(tri), dtype=[("n", "<f4", 3), ("v", "<f4", 9), ("attr", "<u2")])
+    rec["n"] = n
+    rec["v"] = tri.reshape(-1, 9)
+    return b"vinetwin vine".ljust(80, b" ") + np.uint32(len(tri)).tobytes() + rec.tobytes()
+
+
 def vine_scene_xml(
-    vertices: npt.NDArray[np.float32], faces: npt.NDArray[np.uint32], camera: CameraModel
+    vertices: npt.NDArray[np.float32],
+    faces: npt.NDArray[np.uint32],
+    camera: CameraModel,
+    pieces: list[npt.NDArray[np.int64]] | None = None,
 ) -> tuple[str, dict[str, bytes]]:
-    """MJCF (and its assets) of a static vine mesh and a D405 camera named `d405`.
+    """MJCF (and its assets) of a static vine mesh and a D405 camera named `d405`: one mesh geom
+    `vine<k>` per piece (`pieces`: face indices; None: pieces of `MUJOCO_STL_FACES`, the most
+    MuJoCo's STL reader takes in one file).
 
     Intrinsics go in through `resolution`, `focalpixel`, `principalpixel` and `sensorsize`, so an
     off-centre principal point and fx != fy are honoured.
     """
-    import trimesh
-
-    # MuJoCo's STL reader takes at most 200k faces a file: a bigger vine goes in as several
+    if pieces is None:
+        pieces = [
+            np.arange(start, min(start + MUJOCO_STL_FACES, len(faces)))
+            for start in range(0, max(len(faces), 1), MUJOCO_STL_FACES)
+        ]
     assets = {}
-    for k, start in enumerate(range(0, max(len(faces), 1), MUJOCO_STL_FACES)):
-        part = faces[start : start + MUJOCO_STL_FACES]
-        stl = trimesh.Trimesh(vertices, part, process=False).export(file_type="stl")
-        assert isinstance(stl, bytes)
-        assets[f"vine{k}.stl"] = stl
+    for k, idx in enumerate(pieces):
+        if len(idx) > MUJOCO_STL_FACES:
+            raise InputError(f"a MuJoCo mesh piece holds at most {MUJOCO_STL_FACES} faces")
+        assets[f"vine{k}.stl"] = stl_bytes(vertices, faces[idx])
     meshes = "".join(f'<mesh name="{n[:-4]}" file="{n}"/>' for n in assets)
     geoms = "\n    ".join(
         f'<geom name="{n[:-4]}" type="mesh" mesh="{n[:-4]}" contype="0" conaffinity="0"/>'
