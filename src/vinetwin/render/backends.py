@@ -275,6 +275,10 @@ class MujocoBackend:
         self.renderer.enable_depth_rendering()
         self._far = float(self.model.vis.map.zfar * self.model.stat.extent)
         self._thread = threading.get_ident()
+        self._lock = threading.Lock()
+        self._release = _egl_release()
+        if self._release is not None:
+            self._release()  # not current in this thread: any thread may take it (one at a time)
         self._fused = self._fused_readback()
         self._buf = np.empty((camera.height, camera.width), np.float32)
 
@@ -299,12 +303,23 @@ class MujocoBackend:
         return float(np.float32(-0.5) * c - np.float32(0.5)), float(np.float32(-0.5) * d)
 
     def render(self, T_vine_camera: Any) -> DepthImage:
-        if threading.get_ident() != self._thread:
-            # its EGL context is current in the thread that made it (another gets EGL_BAD_ACCESS)
+        if self._release is None and threading.get_ident() != self._thread:
+            # an OSMesa or GLFW context stays current in the thread that made it (another gets
+            # an error from deep inside OpenGL); an EGL one is released after each view
             raise BackendUnavailable(
-                "mujoco", "a MuJoCo renderer renders in the thread that created it, not another"
+                "mujoco",
+                "a MuJoCo renderer renders in the thread that created it, not another "
+                f"(MUJOCO_GL={os.environ.get('MUJOCO_GL')}; with egl any thread may)",
             )
         T = check_pose(T_vine_camera, "T_vine_camera")
+        with self._lock:
+            try:
+                return self._render(T)
+            finally:
+                if self._release is not None:
+                    self._release()
+
+    def _render(self, T: Any) -> DepthImage:
         visible = frustum_hits(self._corners, T, self.camera, FRUSTUM_MARGIN_PX)
         self.model.geom_rgba[self._geoms, 3] = visible  # alpha 0: left out of the scene
         self.drawn = int(np.count_nonzero(visible))
@@ -329,7 +344,31 @@ class MujocoBackend:
         return out
 
     def close(self) -> None:
-        self.renderer.close()
+        with self._lock:
+            if self._release is None and threading.get_ident() != self._thread:
+                log.debug("MuJoCo renderer left to the process's end: closed from another thread")
+                return
+            self.renderer.close()
+            if self._release is not None:
+                self._release()
+
+
+def _egl_release() -> Any:
+    """With MUJOCO_GL=egl: a function releasing this thread's current EGL context (a context is
+    current in one thread at a time; released, another thread can take it); else None."""
+    if os.environ.get("MUJOCO_GL", "").lower() != "egl":
+        return None
+    try:
+        from mujoco import egl
+    except Exception:
+        return None
+
+    def release() -> None:
+        E = egl.EGL
+        if egl.EGL_DISPLAY is not None:
+            E.eglMakeCurrent(egl.EGL_DISPLAY, E.EGL_NO_SURFACE, E.EGL_NO_SURFACE, E.EGL_NO_CONTEXT)
+
+    return release
 
 
 def mesh_pieces(
