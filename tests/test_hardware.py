@@ -100,6 +100,32 @@ class _Pump:
         self.thread.join()
 
 
+def test_quantize_depth_matches_the_numpy_formulation() -> None:
+    """The compiled quantisation gives the counts of the numpy formulation it replaced (round
+    half to even in float64; 0 for no data, negatives, NaN, inf and beyond 65535 counts), for
+    float32, float64 and integer images and a scalar."""
+
+    def numpy_counts(depth: np.ndarray, unit: float) -> np.ndarray:
+        d = np.asarray(depth, dtype=np.float64)
+        counts = np.where(np.isfinite(d) & (d > 0), np.round(d / unit), 0)
+        counts[counts > 65535] = 0
+        return counts.astype(np.uint16)
+
+    rng = np.random.default_rng(0)
+    for dtype in (np.float32, np.float64):
+        d = rng.uniform(-0.1, 7.0, (48, 85)).astype(dtype)
+        d[rng.random(d.shape) < 0.1] = np.nan
+        d[0, :5] = [np.inf, -np.inf, 0.0, 65535.5e-4, 65534.5e-4]
+        d[1, :4] = (np.arange(4) + 0.5) * 1e-4  # exact halves round to even
+        for unit in (1e-4, 1e-3):
+            np.testing.assert_array_equal(quantize_depth(d, unit), numpy_counts(d, unit))
+        np.testing.assert_array_equal(quantize_depth(d.T, 1e-4), numpy_counts(d.T, 1e-4))
+    ints = rng.integers(0, 5000, (4, 4))
+    np.testing.assert_array_equal(quantize_depth(ints, 1e-3), numpy_counts(ints, 1e-3))
+    one = quantize_depth(np.float32(0.09), 1e-4)
+    assert one.shape == () and int(one) == 900
+
+
 def test_live_d405_through_the_real_library(vine_views: VineViews) -> None:
     """RealSenseSource opens the (software) D405's depth and colour streams through
     pyrealsense2's sensor API, as it opens a real one: frames arrive bit-exact with the

@@ -85,6 +85,16 @@ def gl_reverse_z_depth(
 
 
 @nb.njit(cache=True, nogil=True)
+def quantize_depth(d: np.ndarray, depth_unit: float, out: np.ndarray) -> None:
+    """Metres (flat, any float type) to 16-bit counts, rounded half to even in float64: 0 for
+    no data (0, negative, NaN, inf) and beyond 65535 counts."""
+    for i in range(d.shape[0]):
+        x = np.float64(d[i])
+        c = np.rint(x / depth_unit) if math.isfinite(x) and x > 0 else 0.0
+        out[i] = np.uint16(c) if c <= 65535.0 else np.uint16(0)
+
+
+@nb.njit(cache=True, nogil=True)
 def voxel_grid(
     points: np.ndarray,
     normals: np.ndarray,

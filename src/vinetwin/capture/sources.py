@@ -73,10 +73,16 @@ class CameraFrame:
 
 def quantize_depth(depth: Any, depth_unit: float) -> npt.NDArray[np.uint16]:
     """Metres to 16-bit counts as the camera streams them (0 for no data and out of range)."""
-    d = np.asarray(depth, dtype=np.float64)
-    counts = np.where(np.isfinite(d) & (d > 0), np.round(d / depth_unit), 0)
-    counts[counts > 65535] = 0
-    return counts.astype(np.uint16)
+    from vinetwin import _kernels
+
+    d = np.asarray(depth)
+    if d.dtype not in (np.float32, np.float64):
+        d = d.astype(np.float64)
+    if not d.flags.c_contiguous:
+        d = d.copy()
+    out = np.empty(d.shape, np.uint16)
+    _kernels.quantize_depth(d.reshape(-1), float(depth_unit), out.reshape(-1))
+    return out
 
 
 class CameraSource(ABC):

@@ -530,3 +530,18 @@ def get_backend(
     if name == "mujoco":
         return MujocoBackend(vertices, faces, camera)
     raise InputError(f"unknown render backend '{name}'; choose one of: {', '.join(BACKENDS)}")
+
+
+def scene_backend(
+    vertices: Any, faces: Any, camera: CameraModel, *, any_thread: bool = False, threads: int = 0
+) -> DepthBackend:
+    """The renderer of a simulation's scene, which renders a view per camera frame (hundreds a
+    run): `resolve_backend` for a batch (`BATCH_BACKEND` where it can start, else
+    `SINGLE_BACKEND` with a warning). `any_thread`: the caller may render from threads other
+    than this one (a web server's validations), which MuJoCo allows only with EGL; elsewhere
+    `SINGLE_BACKEND`. `threads`: Open3D's ray-casting threads (0: all)."""
+    name = resolve_backend(None, AUTO_MIN_VIEWS)
+    if name == "mujoco" and any_thread and os.environ.get("MUJOCO_GL", "egl").lower() != "egl":
+        name = SINGLE_BACKEND
+    kwargs = {"threads": threads} if name == "open3d" and threads else {}
+    return get_backend(name, vertices, faces, camera, **kwargs)

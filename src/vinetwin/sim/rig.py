@@ -159,7 +159,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
     """`vinetwin servo --camera sim`: the simulated D405 on a free-flying camera (`--robot sim`)
     or on the MuJoCo Panda (`--robot mujoco`), from a start `cfg.start_translation` /
     `start_rotation` away from the pruning pose that still sees the cut."""
-    from vinetwin.render.backends import get_backend
+    from vinetwin.render.backends import get_backend, scene_backend
     from vinetwin.servo.runner import dense_reference_for, reference_cloud, true_error_of
     from vinetwin.sim.config import load_profile
 
@@ -196,7 +196,7 @@ def simulated_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessi
             from vinetwin.servo.config import DENSE_FACTOR
 
             dense = dense_cloud(rendered.depth, twin.camera, twin.perception, DENSE_FACTOR)
-    backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
+    backend = scene_backend(mesh.vertices, mesh.faces, twin.camera)
     rng = np.random.default_rng(cfg.seed)
     cut = twin.cut_point(pose.cut_point).point
     start = start_pose(

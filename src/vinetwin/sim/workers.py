@@ -43,12 +43,13 @@ class _TwinWorker:
 
     def __init__(self, ctx: dict[str, Any]) -> None:
         from vinetwin.camera import CameraModel
-        from vinetwin.render.backends import get_backend
+        from vinetwin.render.backends import scene_backend
 
         self.mesh = load_mesh(ctx["mesh_path"])
         cam = CameraModel.from_dict(ctx["camera"])
-        self.backend = get_backend(
-            "open3d", self.mesh.vertices, self.mesh.faces, cam, threads=worker_threads()
+        # any thread: with one worker the jobs run in the caller's thread (a web server's)
+        self.backend = scene_backend(
+            self.mesh.vertices, self.mesh.faces, cam, any_thread=True, threads=worker_threads()
         )
         self.perception = PerceptionConfig.from_dict(ctx["perception"])
         self.arms: dict[tuple[str, bytes], Any] = {}
