@@ -124,3 +124,16 @@ def test_perception_benchmark_quick(tmp_path: Path) -> None:
     assert [r["decimation"] for r in rows] == [1, 2] and rows[0]["rule"] == rows[1]["rule"]
     assert 0.5 * rows[0]["points"] < rows[1]["points"] < rows[0]["points"]
     assert rows[1]["icp"]["symmetric"]["t_mm_median"] < 1.0
+
+
+def test_sim_benchmark_quick(tmp_path: Path) -> None:
+    """A closed-loop run per scene backend, its time split into render, D405 model, servo step
+    and the rest."""
+    out = tmp_path / "sim.json"
+    proc, data = _quick("sim.py", out)
+    assert [r["backend"] for r in data["rows"]] == ["open3d", "mujoco"]
+    for r in data["rows"]:
+        assert r["frames"] > 0 and r["x_real_time"] > 0 and r["render_ms"] > 0
+        parts = r["render_ms"] + r["sensor_ms"] + r["servo_step_ms"] + r["rest_ms"]
+        assert abs(parts - r["ms_per_frame"]) < 1e-6 * max(1.0, r["ms_per_frame"])
+    assert "goal 3x" in proc.stdout

@@ -78,6 +78,10 @@ def test_pyrender_opengl_camera_pose() -> None:
     cam = pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=0.01, zfar=10.0)
     scene.add(cam, pose=cv.T_world_camera_opengl(T_WORLD_CAMERA))
     r = pyrender.OffscreenRenderer(CAM.width, CAM.height)
+    # its delete would otherwise terminate the EGL display MuJoCo shares in this process
+    from vinetwin.render.backends import _keep_egl_display_alive
+
+    _keep_egl_display_alive(r)
     try:
         depth = r.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
     finally:

@@ -321,6 +321,26 @@ def test_export_of_a_batch_uses_the_batch_backend(
     assert info["backend"] == backends.SINGLE_BACKEND
 
 
+def test_mujoco_survives_a_pyrender_renderer_deleted_directly() -> None:
+    """pyrender's own `OffscreenRenderer.delete` terminates the EGL display the process shares;
+    a MuJoCo backend made afterwards initialises it again instead of failing with
+    EGL_NOT_INITIALIZED."""
+    import os
+
+    pyrender = pytest.importorskip("pyrender")
+    if os.environ.get("MUJOCO_GL", "egl").lower() != "egl":
+        pytest.skip("EGL only")
+    box = trimesh.creation.box((0.1, 0.1, 0.1))
+    box.apply_translation([0, 0, 0.3])
+    cam = d405("848x480")
+    _backend_or_skip("mujoco", box.vertices, box.faces, cam).close()  # the display is up
+    r = pyrender.OffscreenRenderer(64, 48)
+    r.delete()  # eglTerminate
+    mj = get_backend("mujoco", box.vertices, box.faces, cam)
+    assert (mj.render(np.eye(4)) > 0).sum() > 10_000
+    mj.close()
+
+
 def test_mujoco_renders_from_any_thread_one_at_a_time(
     sample: tuple[Twin, trimesh.Trimesh],
 ) -> None:

@@ -266,6 +266,7 @@ class MujocoBackend:
         self.drawn = len(pieces)
         """Pieces the last view drew (of `len(self._geoms)`)."""
         try:
+            _egl_reinitialize()
             self.renderer = mujoco.Renderer(self.model, camera.height, camera.width)
         except Exception as exc:
             raise BackendUnavailable(
@@ -351,6 +352,21 @@ class MujocoBackend:
             self.renderer.close()
             if self._release is not None:
                 self._release()
+
+
+def _egl_reinitialize() -> None:
+    """With MUJOCO_GL=egl: initialises again the EGL display MuJoCo keeps for the process, in
+    case a library sharing it (pyrender's `OffscreenRenderer.delete`, used directly) terminated
+    it; MuJoCo would otherwise fail with EGL_NOT_INITIALIZED until the process ends. A no-op on
+    an initialised display."""
+    if os.environ.get("MUJOCO_GL", "").lower() != "egl":
+        return
+    try:
+        from mujoco import egl
+    except Exception:
+        return
+    if egl.EGL_DISPLAY is not None:
+        egl.EGL.eglInitialize(egl.EGL_DISPLAY, None, None)
 
 
 def _egl_release() -> Any:
