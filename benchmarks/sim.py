@@ -134,7 +134,7 @@ def run_twin(path: Path, duration: float) -> list[dict[str, Any]]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--twin", type=Path, action="append", help="twin folder (repeatable)")
     ap.add_argument("--duration", type=float, default=6.0, help="simulated seconds per run")
     ap.add_argument("--quick", action="store_true", help="1 simulated second")
