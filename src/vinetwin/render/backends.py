@@ -41,9 +41,10 @@ more with: the fastest per view of the three (`benchmarks/render.py`: 12.5 ms ag
 see (`tests/test_render.py`). Where it cannot start (no EGL), `auto` takes `SINGLE_BACKEND`."""
 SINGLE_BACKEND: BackendName = "open3d"
 """What `auto` renders fewer views with, and where `BATCH_BACKEND` cannot start; code that renders
-views of a mesh it has just loaded (a reference rendered on the fly, the web app's preview, the
-simulation's scene) uses it too: Open3D builds its scene in 0.04-0.4 s where MuJoCo compiles the
-same vine in 0.2-1.6 s (the sample) or 2-6 s (900k triangles), and needs no OpenGL."""
+a few views of a mesh it has just loaded (a reference rendered on the fly, the web app's preview)
+uses it too: Open3D builds its scene in 0.04-0.4 s where MuJoCo compiles the same vine in
+0.5-0.8 s (the sample) or 4-6 s (900k triangles), and needs no OpenGL. A simulation's scene,
+which renders a view per camera frame, takes the batch backend (`scene_backend`)."""
 AUTO_MIN_VIEWS = 100
 """The batch size from which `auto` takes `BATCH_BACKEND`: where its faster views repay its
 slower start. Measured exports (`render.export`, its default workers): the sample, 50 views
