@@ -36,8 +36,8 @@ DepthImage = npt.NDArray[np.float32]
 
 BATCH_BACKEND: BackendName = "mujoco"
 """What `auto` (the default of export and preview) renders a batch of `AUTO_MIN_VIEWS` views or
-more with: the fastest per view of the three (`benchmarks/render.py`: 12.5 ms against Open3D's
-33.7 on the sample at 848x480), within 1 mm of Open3D's exact ray casting on every pixel both
+more with: the fastest per view of the three (`benchmarks/render.py`: 6.5 ms against Open3D's
+29.4 on the sample at 848x480), within 1 mm of Open3D's exact ray casting on every pixel both
 see (`tests/test_render.py`). Where it cannot start (no EGL), `auto` takes `SINGLE_BACKEND`."""
 SINGLE_BACKEND: BackendName = "open3d"
 """What `auto` renders fewer views with, and where `BATCH_BACKEND` cannot start; code that renders
