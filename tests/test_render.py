@@ -321,6 +321,34 @@ def test_export_of_a_batch_uses_the_batch_backend(
     assert info["backend"] == backends.SINGLE_BACKEND
 
 
+def test_scene_backend_for_several_threads_takes_mujoco_only_with_egl(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A simulation that may render from several threads (the web app's validations) gets
+    MuJoCo only where its context can move between threads (EGL); with a display and no
+    MUJOCO_GL (MuJoCo's GLFW) or with OSMesa, Open3D."""
+    from vinetwin.render import backends
+
+    made: list[str] = []
+    monkeypatch.setattr(backends, "resolve_backend", lambda name, views=1: "mujoco")
+    monkeypatch.setattr(backends, "get_backend", lambda name, *a, **k: made.append(name))
+    for env, display, want in (
+        ("egl", "", "mujoco"),
+        ("osmesa", "", "open3d"),
+        (None, ":0", "open3d"),
+        (None, "", "mujoco"),
+    ):
+        if env is None:
+            monkeypatch.delenv("MUJOCO_GL", raising=False)
+        else:
+            monkeypatch.setenv("MUJOCO_GL", env)
+        monkeypatch.setenv("DISPLAY", display)
+        backends.scene_backend([], [], d405("848x480"), any_thread=True)
+        assert made[-1] == want, (env, display)
+    backends.scene_backend([], [], d405("848x480"))  # one thread: whatever resolve_backend says
+    assert made[-1] == "mujoco"
+
+
 def test_mujoco_survives_a_pyrender_renderer_deleted_directly() -> None:
     """pyrender's own `OffscreenRenderer.delete` terminates the EGL display the process shares;
     a MuJoCo backend made afterwards initialises it again instead of failing with

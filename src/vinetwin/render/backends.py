@@ -355,6 +355,15 @@ class MujocoBackend:
                 self._release()
 
 
+def _mujoco_gl() -> str:
+    """The OpenGL platform a MuJoCo renderer made now would use: MUJOCO_GL, else EGL without a
+    display (what `MujocoBackend` sets) and GLFW with one (MuJoCo's own default)."""
+    gl = os.environ.get("MUJOCO_GL")
+    if gl:
+        return gl.lower()
+    return "glfw" if os.environ.get("DISPLAY") else "egl"
+
+
 def _egl_reinitialize() -> None:
     """With MUJOCO_GL=egl: initialises again the EGL display MuJoCo keeps for the process, in
     case a library sharing it (pyrender's `OffscreenRenderer.delete`, used directly) terminated
@@ -558,7 +567,7 @@ def scene_backend(
     than this one (a web server's validations), which MuJoCo allows only with EGL; elsewhere
     `SINGLE_BACKEND`. `threads`: Open3D's ray-casting threads (0: all)."""
     name = resolve_backend(None, AUTO_MIN_VIEWS)
-    if name == "mujoco" and any_thread and os.environ.get("MUJOCO_GL", "egl").lower() != "egl":
+    if name == "mujoco" and any_thread and _mujoco_gl() != "egl":
         name = SINGLE_BACKEND
     kwargs = {"threads": threads} if name == "open3d" and threads else {}
     return get_backend(name, vertices, faces, camera, **kwargs)
