@@ -47,9 +47,10 @@ uses it too: Open3D builds its scene in 0.04-0.4 s where MuJoCo compiles the sam
 which renders a view per camera frame, takes the batch backend (`scene_backend`)."""
 AUTO_MIN_VIEWS = 100
 """The batch size from which `auto` takes `BATCH_BACKEND`: where its faster views repay its
-slower start. Measured exports (`render.export`, its default workers): the sample, 50 views
-3.2 s with open3d against 4.8 s with mujoco, 200 views 12.6 against 7.6 s; the dense generated
-vine (897k triangles) 7.1 against 9.5 s and 24.5 against 17.3 s."""
+slower start. Measured exports (`render.export`, its default workers; re-measured with the
+culled MuJoCo scene at 308e770): the sample, 50 views 2.1 s with open3d against 3.0 s with
+mujoco, 100 views 4.4 against 3.6 s; the dense generated vine (897k triangles) 5.5 against 8.1 s
+and 10.0 against 8.8 s."""
 
 MUJOCO_STL_FACES = 200_000
 """The most faces MuJoCo's STL reader takes in one file."""
