@@ -250,13 +250,14 @@ class MujocoBackend:
         V, F = check_mesh(vertices, faces)
         self.camera = camera
         self._mujoco = mujoco
-        pieces = mesh_pieces(F, V, MUJOCO_CHUNK_FACES)
+        pieces = mesh_pieces(V, F, MUJOCO_CHUNK_FACES)
         self.model = mujoco.MjModel.from_xml_string(*vine_scene_xml(V, F, camera, pieces))
         self.data = mujoco.MjData(self.model)
         self._cam_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, "d405")
         # each piece's bounding box (8 corners, vine frame) and geom, for the frustum test
-        lo = np.stack([V[F[idx]].reshape(-1, 3).min(axis=0) for idx in pieces])
-        hi = np.stack([V[F[idx]].reshape(-1, 3).max(axis=0) for idx in pieces])
+        boxes = [V[F[idx]].reshape(-1, 3) for idx in pieces]
+        lo = np.stack([b.min(axis=0) for b in boxes])
+        hi = np.stack([b.max(axis=0) for b in boxes])
         pick = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)], dtype=bool)
         self._corners = np.where(pick[None], hi[:, None], lo[:, None]).astype(np.float64)
         self._geoms = np.array(
@@ -365,29 +366,32 @@ def _mujoco_gl() -> str:
     return "glfw" if os.environ.get("DISPLAY") else "egl"
 
 
-def _egl_reinitialize() -> None:
-    """With MUJOCO_GL=egl: initialises again the EGL display MuJoCo keeps for the process, in
-    case a library sharing it (pyrender's `OffscreenRenderer.delete`, used directly) terminated
-    it; MuJoCo would otherwise fail with EGL_NOT_INITIALIZED until the process ends. A no-op on
-    an initialised display."""
-    if os.environ.get("MUJOCO_GL", "").lower() != "egl":
-        return
-    try:
-        from mujoco import egl
-    except Exception:
-        return
-    if egl.EGL_DISPLAY is not None:
-        egl.EGL.eglInitialize(egl.EGL_DISPLAY, None, None)
-
-
-def _egl_release() -> Any:
-    """With MUJOCO_GL=egl: a function releasing this thread's current EGL context (a context is
-    current in one thread at a time; released, another thread can take it); else None."""
-    if os.environ.get("MUJOCO_GL", "").lower() != "egl":
+def _mujoco_egl() -> Any:
+    """`mujoco.egl` where MuJoCo renders through EGL (`_mujoco_gl`), else None."""
+    if _mujoco_gl() != "egl":
         return None
     try:
         from mujoco import egl
     except Exception:
+        return None
+    return egl
+
+
+def _egl_reinitialize() -> None:
+    """With EGL: initialises again the EGL display MuJoCo keeps for the process, in case a
+    library sharing it (pyrender's `OffscreenRenderer.delete`, used directly) terminated it;
+    MuJoCo would otherwise fail with EGL_NOT_INITIALIZED until the process ends. A no-op on an
+    initialised display."""
+    egl = _mujoco_egl()
+    if egl is not None and egl.EGL_DISPLAY is not None:
+        egl.EGL.eglInitialize(egl.EGL_DISPLAY, None, None)
+
+
+def _egl_release() -> Any:
+    """With EGL: a function releasing this thread's current EGL context (a context is current in
+    one thread at a time; released, another thread can take it); else None."""
+    egl = _mujoco_egl()
+    if egl is None:
         return None
 
     def release() -> None:
@@ -399,7 +403,7 @@ def _egl_release() -> Any:
 
 
 def mesh_pieces(
-    faces: npt.NDArray[np.uint32], vertices: npt.NDArray[np.float32], size: int
+    vertices: npt.NDArray[np.float32], faces: npt.NDArray[np.uint32], size: int
 ) -> list[npt.NDArray[np.int64]]:
     """The faces split into spatially compact pieces of at most `size` faces each (indices into
     `faces`): halved at the median of their centres along the longest side, recursively."""
