@@ -109,6 +109,68 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def test_page_sends_only_what_changed(twin_dir: Path) -> None:
+    """After a click the app re-sends the new cut point and pose and recolours the pose that was
+    selected; the other nodes stay as they were sent. A deleted pose leaves the page, undo
+    brings it back, and the gizmo follows the selection."""
+    from vinetwin.web.app import serve
+
+    app = serve(twin_dir, port=_free_port())
+    try:
+        sess = app.session
+        twin = sess._require()
+        assert set(app._pose_nodes) == {p.id for p in twin.poses}
+        assert set(app._cut_nodes) == {c.id for c in twin.cut_points}
+        sent = {pid: node[1] for pid, node in app._pose_nodes.items()}
+        cuts = {cid: node[1] for cid, node in app._cut_nodes.items()}
+        app.refresh()  # nothing changed: nothing is sent again
+        assert all(app._pose_nodes[pid][1] is h for pid, h in sent.items())
+        was = sess.selected
+        origin, direction, _ = ray_at(twin)
+        hit = sess.click(origin, direction)
+        assert hit is not None
+        c, p = hit
+        app.refresh()
+        assert sess.selected == p.id and app._pose_nodes[p.id][1].color == (255, 120, 0)
+        assert c.id in app._cut_nodes
+        resent = [pid for pid, h in sent.items() if app._pose_nodes[pid][1] is not h]
+        assert resent == ([was] if was else [])
+        assert app._pose_nodes[was][1].color == (40, 40, 200)
+        assert all(app._cut_nodes[cid][1] is h for cid, h in cuts.items())
+        assert app.gizmo is not None and app._gizmo_key is not None and app._gizmo_key[0] == p.id
+        sess.delete_pose(p.id)
+        app.refresh()
+        assert p.id not in app._pose_nodes
+        assert set(app._pose_nodes) == {q.id for q in sess._require().poses}
+        sess.undo()
+        app.refresh()
+        assert p.id in app._pose_nodes
+    finally:
+        app.server.stop()
+
+
+def test_shading_setting_reaches_the_page(twin_dir: Path) -> None:
+    """`WebConfig.shading`: "fast" draws the vine toon-shaded without shadows, "full" physically
+    based with shadows; anything else is refused by name."""
+    from vinetwin.errors import InputError
+    from vinetwin.web.app import serve
+    from vinetwin.web.config import Shading, WebConfig
+
+    shadings: tuple[tuple[Shading, str, bool], ...] = (
+        ("fast", "toon3", False),
+        ("full", "standard", True),
+    )
+    for shading, material, shadow in shadings:
+        app = serve(twin_dir, port=_free_port(), config=WebConfig(shading=shading))
+        try:
+            assert app.vine.material == material
+            assert app.vine.cast_shadow is shadow and app.vine.receive_shadow is shadow
+        finally:
+            app.server.stop()
+    with pytest.raises(InputError, match="shading"):
+        WebConfig(shading="pretty")  # type: ignore[arg-type]
+
+
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
 def test_browser_click_creates_a_cut_point(twin_dir: Path, tmp_path: Path) -> None:
     from playwright.sync_api import sync_playwright

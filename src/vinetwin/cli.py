@@ -18,6 +18,7 @@ from vinetwin.progress import with_progress
 from vinetwin.reconstruct.pipeline import ReconstructConfig
 from vinetwin.servo.config import CheckConfig, RunnerConfig
 from vinetwin.sim.config import CampaignConfig, FidelityConfig, ValidateConfig
+from vinetwin.web.config import WebConfig
 
 log = logging.getLogger("vinetwin")
 
@@ -378,11 +379,12 @@ class Web:
     """Address to listen on."""
     port: int = 8080
     """Port to listen on."""
+    config: Annotated[WebConfig, Nested] = field(default_factory=WebConfig)
 
     def run(self) -> None:
         from vinetwin.web.app import serve_folder
 
-        serve_folder(self.twin, self.host, self.port, forever=True)
+        serve_folder(self.twin, self.host, self.port, forever=True, config=self.config)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -26,6 +26,7 @@ from vinetwin.cloud import ICP_VARIANTS
 from vinetwin.conventions import viser_wxyz_position
 from vinetwin.errors import VinetwinError
 from vinetwin.twin.poses import Approach
+from vinetwin.web.config import WebConfig
 from vinetwin.web.session import AuthoringSession
 
 log = logging.getLogger("vinetwin.web")
@@ -51,9 +52,16 @@ def _depth_rgb(depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
 class App:
     """The page bound to one `AuthoringSession`."""
 
-    def __init__(self, root: str | Path, host: str = "127.0.0.1", port: int = 8080) -> None:
+    def __init__(
+        self,
+        root: str | Path,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        config: WebConfig | None = None,
+    ) -> None:
         import viser
 
+        self.config = config or WebConfig()
         self.session = AuthoringSession(root)
         self.server = viser.ViserServer(host=host, port=port, label="vinetwin", verbose=False)
         self.lock = threading.RLock()
@@ -90,6 +98,11 @@ class App:
             self.show_skeleton = g.add_checkbox("skeleton", False)
             self.show_candidates = g.add_checkbox("cut candidates", True)
         self.listing = g.add_markdown("")
+        # the scene nodes the page has, by id, with what they were drawn from (`_sync_scene`)
+        self._cut_nodes: dict[str, tuple[Any, Any]] = {}
+        self._pose_nodes: dict[str, tuple[Any, ...]] = {}
+        self.gizmo: Any = None
+        self._gizmo_key: tuple[str, bytes] | None = None
         self._static_scene()
         self._bind()
         self.refresh()
@@ -128,7 +141,13 @@ class App:
             cell_size=0.1,
             position=(float(V[:, 0].mean()), float(V[:, 1].mean()), float(lo[2])),
         )
-        s.add_mesh_simple("/vine", V.astype(np.float32), F.astype(np.uint32), color=(140, 100, 70))
+        full = self.config.shading == "full"
+        if not full:  # no shadow pass (the default lights cast one) in each frame
+            s.configure_default_lights(enabled=True, cast_shadow=False)
+        self.vine = s.add_mesh_simple(
+            "/vine", V.astype(np.float32), F.astype(np.uint32), color=(140, 100, 70),
+            material="standard" if full else "toon3", cast_shadow=full, receive_shadow=full,
+        )  # fmt: skip
         try:
             sk = sess.twin.load_skeleton()
         except VinetwinError:
@@ -177,7 +196,6 @@ class App:
     def refresh(self) -> None:
         """Redraws cut points and poses and the side panel from the session."""
         sess = self.session
-        s = self.server.scene
         twin = sess.twin
         msg = (
             f"**{twin.name}**: {len(twin.cut_points)} cut points, {len(twin.poses)} poses. Click a cane to add a cut."
@@ -191,31 +209,7 @@ class App:
         self.status.content = msg
         if twin is None:
             return
-        for h in getattr(self, "_handles", []):
-            h.remove()
-        self._handles: list[Any] = []
-        cam = twin.camera
-        fov = 2 * math.atan(cam.height / (2 * cam.fy))
-        for c in twin.cut_points:
-            self._handles.append(
-                s.add_icosphere(
-                    f"/cuts/{c.id}", radius=0.004, color=(230, 30, 30), position=tuple(c.point)
-                )
-            )
-        for p in twin.poses:
-            wxyz, pos = viser_wxyz_position(p.T_vine_camera)
-            sel = p.id == sess.selected
-            self._handles.append(
-                s.add_camera_frustum(
-                    f"/poses/{p.id}", fov=fov, aspect=cam.width / cam.height, scale=0.04,
-                    color=(255, 120, 0) if sel else (40, 40, 200), wxyz=wxyz, position=pos,
-                    thickness=0.0015,
-                )
-            )  # fmt: skip
-            cut = twin.cut_point(p.cut_point).point
-            self._handles.append(
-                s.add_line_segments(f"/axes/{p.id}", np.array([[pos, cut]], np.float32), (255, 120, 0) if sel else (40, 40, 200), thickness=1.0, thickness_units="screen")
-            )  # fmt: skip
+        self._sync_scene(twin)
         lines = ["| pose | cut | variant | standoff |", "|---|---|---|---|"]
         for p in twin.poses:
             mark = "**" if p.id == sess.selected else ""
@@ -235,9 +229,79 @@ class App:
             self.azimuth.value = round(math.degrees(p.approach.azimuth), 2)
             self.elevation.value = round(math.degrees(p.approach.elevation), 2)
             self.roll.value = round(math.degrees(p.approach.roll), 2)
-            wxyz, pos = viser_wxyz_position(p.T_vine_camera)
+
+    def _sync_scene(self, twin: Any) -> None:
+        """Brings the cut points, pose frustums, pose-to-cut lines and the gizmo in the page up
+        to date with the twin, sending only what changed: a click adds one cut point and one
+        pose and recolours the previously selected pose, instead of the page rebuilding every
+        node (which made the page's update after a click grow with the twin's pose count)."""
+        s = self.server.scene
+        sess = self.session
+        cam = twin.camera
+        fov = 2 * math.atan(cam.height / (2 * cam.fy))
+        cuts = {
+            c.id: (float(c.point[0]), float(c.point[1]), float(c.point[2])) for c in twin.cut_points
+        }
+        for cid in set(self._cut_nodes) - set(cuts):
+            self._cut_nodes.pop(cid)[1].remove()
+        for cid, point in cuts.items():
+            old = self._cut_nodes.get(cid)
+            if old is not None and old[0] == point:
+                continue
+            if old is not None:
+                old[1].remove()
+            handle = s.add_icosphere(
+                f"/cuts/{cid}", radius=0.004, color=(230, 30, 30), position=point
+            )
+            self._cut_nodes[cid] = (point, handle)
+        poses = {p.id: p for p in twin.poses}
+        for pid in set(self._pose_nodes) - set(poses):
+            for h in self._pose_nodes.pop(pid)[1:]:
+                h.remove()
+        for pid, p in poses.items():
+            T = np.asarray(p.T_vine_camera, float)
+            cut = cuts.get(p.cut_point)
+            sel = pid == sess.selected
+            key = (T.tobytes(), cut, sel, fov, cam.width / cam.height)
+            old = self._pose_nodes.get(pid)
+            if old is not None and old[0] == key:
+                continue
+            if old is not None:
+                for h in old[1:]:
+                    h.remove()
+            wxyz, pos = viser_wxyz_position(T)
+            color = (255, 120, 0) if sel else (40, 40, 200)
+            frustum = s.add_camera_frustum(
+                f"/poses/{pid}", fov=fov, aspect=cam.width / cam.height, scale=0.04,
+                color=color, wxyz=wxyz, position=pos, thickness=0.0015,
+            )  # fmt: skip
+            end = cut if cut is not None else pos
+            line = s.add_line_segments(
+                f"/axes/{pid}", np.array([[pos, end]], np.float32), color,
+                thickness=1.0, thickness_units="screen",
+            )  # fmt: skip
+            self._pose_nodes[pid] = (key, frustum, line)
+        selected = poses.get(sess.selected)
+        if selected is None:
+            if self.gizmo is not None:
+                self.gizmo.remove()
+                self.gizmo, self._gizmo_key = None, None
+            return
+        T = np.asarray(selected.T_vine_camera, float)
+        key = (selected.id, T.tobytes())
+        if self.gizmo is not None and self._gizmo_key == key:
+            return
+        wxyz, pos = viser_wxyz_position(T)
+        if (
+            self.gizmo is not None
+            and self._gizmo_key is not None
+            and self._gizmo_key[0] == selected.id
+        ):
+            self.gizmo.wxyz, self.gizmo.position = wxyz, pos  # the same pose moved
+        else:
             self.gizmo = s.add_transform_controls("/gizmo", scale=0.05, wxyz=wxyz, position=pos)
             self.gizmo.on_update(self._on_gizmo)
+        self._gizmo_key = key
 
     # ------------------------------------------------------------------ events
     def _bind(self) -> None:
@@ -255,19 +319,29 @@ class App:
                 except VinetwinError as exc:
                     self.session.problem = f"cannot place a cut point there: {exc}"
                     hit = None
-                if hit is not None:
-                    try:
-                        self._show_preview(hit[1].id)
-                    finally:
-                        self.session.save_if_auto()
-                    self.last_latency = time.perf_counter() - t0
-                    log.info(
-                        "cut point %s, pose %s in %.0f ms",
-                        hit[0].id,
-                        hit[1].id,
-                        1000 * self.last_latency,
-                    )
-                self.refresh()
+                if hit is None:
+                    self.refresh()
+                    return
+                try:
+                    # one batch of messages, so the page applies the preview, the new pose
+                    # and the panel in one frame (each frame is costly where the page draws
+                    # in software)
+                    with self.server.atomic():
+                        try:
+                            self._show_preview(hit[1].id)
+                        finally:
+                            self.last_latency = time.perf_counter() - t0
+                            self.refresh()
+                finally:
+                    self.session.save_if_auto()  # saved once the preview is on its way
+                    if self.session.problem:
+                        self.refresh()  # the save failed: say so
+                log.info(
+                    "cut point %s, pose %s in %.0f ms",
+                    hit[0].id,
+                    hit[1].id,
+                    1000 * self.last_latency,
+                )
 
         def guarded(fn: Any) -> Any:
             def run(event: Any) -> None:
@@ -442,7 +516,9 @@ class App:
         )
 
 
-def serve(root: str | Path, host: str = "127.0.0.1", port: int = 8080) -> App:
+def serve(
+    root: str | Path, host: str = "127.0.0.1", port: int = 8080, config: WebConfig | None = None
+) -> App:
     """Starts the app (returns at once; the server runs in its own threads). Any host but a
     loopback address exposes the editor, which has no authentication, to the network: that is
     allowed, with a warning."""
@@ -452,13 +528,17 @@ def serve(root: str | Path, host: str = "127.0.0.1", port: int = 8080) -> App:
             "(the app has no authentication); use --host 127.0.0.1 unless the network is yours",
             host, port, root,
         )  # fmt: skip
-    app = App(root, host, port)
+    app = App(root, host, port, config)
     log.info("vinetwin web on http://%s:%d  (twin %s)", host, port, root)
     return app
 
 
 def serve_folder(
-    root: str | Path | None, host: str = "127.0.0.1", port: int = 8080, forever: bool = False
+    root: str | Path | None,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    forever: bool = False,
+    config: WebConfig | None = None,
 ) -> App:
     """`vinetwin web`: serves the twin at `root`, or, without one, a copy of the bundled sample
     in out/web (made once, then edited in place); with `forever`, until interrupted."""
@@ -467,7 +547,7 @@ def serve_folder(
 
         root = copy_bundled_sample(Path("out") / "web")
         log.info("no twin given: editing a copy of the bundled sample in %s", root)
-    app = serve(root, host, port)
+    app = serve(root, host, port, config)
     if forever:
         import time
 
