@@ -110,17 +110,22 @@ class App:
         self._warming.start()
 
     def close(self) -> None:
-        """Stops the server, once the renderer's warm-up (Open3D, in its own thread) is done."""
+        """Stops the server, once the renderer's warm-up (in its own thread) is done, and
+        releases the renderer."""
         self._warming.join(timeout=60)
         self.server.stop()
+        with self.lock:
+            self.session.close()
 
     def _warm_up(self) -> None:
-        """Builds the renderer and compiles the perception chain before the first click."""
+        """Builds the renderer and the picking scene and compiles the perception chain before
+        the first click."""
         sess = self.session
         if sess.twin is None or not sess.twin.poses:
             return
         with self.lock:
             try:
+                sess.picker()
                 sess.preview(sess.twin.poses[0].id)
             except VinetwinError as exc:
                 log.warning("preview warm-up failed: %s", exc)

@@ -50,6 +50,7 @@ class AuthoringSession:
         self._undo: list[dict[str, Any]] = []
         self._redo: list[dict[str, Any]] = []
         self._renderer: Any = None
+        self._picker: Any = None
         self.selected = ""
         self.reload()
 
@@ -65,7 +66,7 @@ class AuthoringSession:
         self.twin = twin
         self.vertices = np.asarray(mesh.vertices, dtype=np.float64)
         self.faces = np.asarray(mesh.faces, dtype=np.int64)
-        self._renderer = None
+        self.close()
         self.problem = ""
         self.selected = twin.poses[0].id if twin.poses else ""
         return True
@@ -81,14 +82,41 @@ class AuthoringSession:
 
     # ------------------------------------------------------------------ picking
     def renderer(self) -> Any:
-        """The render module's default backend on this twin's mesh (built once): it renders the
-        previews and its ray-casting scene answers the picks."""
-        from vinetwin.render.backends import get_backend
+        """The renderer of this twin's mesh (built once): the simulation's, `scene_backend`,
+        which may be used from any thread (the app's clicks and validations run in server
+        threads): MuJoCo where it runs with EGL, else Open3D ray casting. It renders the
+        previews and the validations' scene."""
+        from vinetwin.render.backends import scene_backend
 
         if self._renderer is None:
             twin = self._require()
-            self._renderer = get_backend("open3d", self.vertices, self.faces, twin.camera)
+            self._renderer = scene_backend(self.vertices, self.faces, twin.camera, any_thread=True)
         return self._renderer
+
+    def picker(self) -> Any:
+        """Open3D's ray-casting scene of this twin's mesh (built once), which answers the
+        picks: the renderer's own where it is Open3D's."""
+        from vinetwin import _lazy
+
+        if self._picker is None:
+            r = self.renderer()
+            if r.name == "open3d":
+                self._picker = r.scene
+            else:
+                from vinetwin.render.backends import check_mesh
+
+                o3d = _lazy.open3d()
+                V, F = check_mesh(self.vertices, self.faces)
+                scene = o3d.t.geometry.RaycastingScene()
+                scene.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(F))
+                self._picker = scene
+        return self._picker
+
+    def close(self) -> None:
+        """Releases the renderer and the picking scene (built again when next needed)."""
+        if self._renderer is not None:
+            self._renderer.close()
+        self._renderer = self._picker = None
 
     def pick(self, origin: Any, direction: Any) -> Array | None:
         """The first point where a ray (vine frame) hits the mesh, or None."""
@@ -98,7 +126,7 @@ class AuthoringSession:
         d = np.asarray(direction, dtype=np.float64)
         d = d / (np.linalg.norm(d) or 1.0)
         ray = np.concatenate([np.asarray(origin, dtype=np.float64), d])[None].astype(np.float32)
-        t = float(self.renderer().scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
+        t = float(self.picker().cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
         if not np.isfinite(t):
             return None
         return np.asarray(origin, dtype=np.float64) + t * d
