@@ -86,6 +86,24 @@ def test_executor_isolates_a_dying_worker(kind: str) -> None:
         assert all(by[i].value == i + 100 for i in range(8) if i != 2)
 
 
+def _worker_thread_env(_: int) -> dict[str, str | None]:
+    return {k: os.environ.get(k) for k in ("LP_NUM_THREADS", "OMP_NUM_THREADS")}
+
+
+def test_pool_workers_get_their_share_of_the_cores(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each of n local workers gets cores // n threads, Mesa's llvmpipe included (0: it
+    rasterises in the rendering thread, no threads of its own); the caller's environment is
+    restored afterwards."""
+    monkeypatch.setattr(os, "cpu_count", lambda: 4)
+    monkeypatch.setenv("LP_NUM_THREADS", "7")
+    for workers, omp, lp in ((2, "2", "2"), (4, "1", "0")):
+        outs = list(
+            run_unordered(_worker_thread_env, list(range(workers)), ExecutorConfig(workers=workers))
+        )
+        assert all(o.value == {"LP_NUM_THREADS": lp, "OMP_NUM_THREADS": omp} for o in outs)
+    assert os.environ["LP_NUM_THREADS"] == "7"
+
+
 @pytest.mark.parametrize("kind", ["local", "ray"])
 def test_executor_isolates_a_failing_job(kind: str) -> None:
     if kind == "ray":

@@ -133,6 +133,64 @@ def test_corrupt_mesh_is_a_mesh_error(twin: Twin) -> None:
         Twin.load(twin.root).load_mesh()
 
 
+def test_mesh_arrays_read_as_trimesh_reads_them(tmp_path: Path, sample_twin_dir: Path) -> None:
+    """`load_mesh_arrays` reads binary PLY triangle meshes itself (no trimesh import in the
+    export and campaign workers) and gives trimesh's arrays to the bit; other files go through
+    trimesh (ASCII, quads, extra elements), and a corrupt or truncated one is a MeshError."""
+    import trimesh
+
+    from vinetwin.mesh import _binary_ply_triangles, load_mesh_arrays
+
+    def same(path: Path) -> None:
+        V, F = load_mesh_arrays(path)
+        m = trimesh.load(path, force="mesh", process=False)
+        assert V.dtype == np.float64 and F.dtype == np.int64
+        assert np.array_equal(V, m.vertices) and np.array_equal(F, m.faces)
+
+    sample = sample_twin_dir / "vine.ply"
+    assert _binary_ply_triangles(sample) is not None  # the twins' own form: read without trimesh
+    same(sample)
+    V, F = box_mesh()
+    rng = np.random.default_rng(0)
+    V = V + rng.normal(0, 1e-3, V.shape)
+    box = trimesh.Trimesh(V, F, process=False)
+    for name, kwargs in (("le.ply", {"encoding": "binary"}), ("ascii.ply", {"encoding": "ascii"})):
+        (tmp_path / name).write_bytes(box.export(file_type="ply", **kwargs))
+        same(tmp_path / name)
+    assert _binary_ply_triangles(tmp_path / "ascii.ply") is None  # read by trimesh
+    # big-endian, double vertices with extra properties, int16 counts, uint indices
+    header = (
+        "ply\nformat binary_big_endian 1.0\nelement vertex 8\nproperty double x\n"
+        "property double y\nproperty double z\nproperty uchar red\nelement face 12\n"
+        "property list short uint vertex_indices\nend_header\n"
+    )
+    vert = np.zeros(8, [("x", ">f8"), ("y", ">f8"), ("z", ">f8"), ("r", "u1")])
+    vert["x"], vert["y"], vert["z"] = V.T
+    face = np.zeros(12, [("n", ">i2"), ("i", ">u4", 3)])
+    face["n"], face["i"] = 3, F
+    (tmp_path / "be.ply").write_bytes(header.encode() + vert.tobytes() + face.tobytes())
+    assert _binary_ply_triangles(tmp_path / "be.ply") is not None
+    same(tmp_path / "be.ply")
+    # quads: not the fast form; trimesh triangulates them
+    quads = np.zeros(2, [("n", ">i2"), ("i", ">u4", 4)])
+    quads["n"], quads["i"] = 4, [[0, 1, 2, 3], [4, 5, 6, 7]]
+    qhead = header.replace("element face 12", "element face 2")
+    (tmp_path / "quad.ply").write_bytes(qhead.encode() + vert.tobytes() + quads.tobytes())
+    assert _binary_ply_triangles(tmp_path / "quad.ply") is None
+    assert load_mesh_arrays(tmp_path / "quad.ply")[1].shape == (4, 3)
+    # truncated, and faces indexing missing vertices
+    data = (tmp_path / "le.ply").read_bytes()
+    (tmp_path / "cut.ply").write_bytes(data[:-7])
+    with pytest.raises(MeshError):
+        load_mesh_arrays(tmp_path / "cut.ply")
+    face["i"][0] = [0, 1, 99]
+    (tmp_path / "range.ply").write_bytes(header.encode() + vert.tobytes() + face.tobytes())
+    with pytest.raises(MeshError, match="out of range"):
+        load_mesh_arrays(tmp_path / "range.ply")
+    with pytest.raises(MeshError, match="does not exist"):
+        load_mesh_arrays(tmp_path / "none.ply")
+
+
 def test_create_refuses_bad_meshes(tmp_path: Path) -> None:
     V, F = box_mesh()
     V = V.copy()

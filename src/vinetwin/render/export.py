@@ -43,11 +43,12 @@ from vinetwin.executor import (
 )
 from vinetwin.files import file_sha256, sync_to_disk
 from vinetwin.jobstore import JobStore
-from vinetwin.mesh import load_mesh
+from vinetwin.mesh import load_mesh_arrays
 from vinetwin.render.backends import DepthBackend, get_backend, resolve_backend
 from vinetwin.render.reference import (
     REFERENCE_FORMAT,
-    inputs_digest,
+    digest_inputs,
+    pose_digest,
     pose_seed,
     render_reference,
     write_pcd,
@@ -106,10 +107,10 @@ class _Job:
 # ----------------------------------------------------------------------------- workers
 def _worker_backend(job: _Job) -> DepthBackend:
     def build() -> DepthBackend:
-        mesh = load_mesh(job.mesh_path)
+        V, F = load_mesh_arrays(job.mesh_path)
         cam = CameraModel.from_dict(job.camera)
         kwargs = {"threads": worker_threads()} if job.backend == "open3d" else {}
-        return get_backend(job.backend, mesh.vertices, mesh.faces, cam, **kwargs)
+        return get_backend(job.backend, V, F, cam, **kwargs)
 
     key = ("render", job.mesh_path, job.meta["mesh_sha256"], job.backend, json.dumps(job.camera))
     return worker_cache(key, build)
@@ -224,18 +225,21 @@ def plan_export(
     poses = [twin.pose(i) for i in ids]  # raises TwinError naming an unknown id
     for p in poses:  # ids name the files written: never a path out of the folder
         check_id(p.id, "pose id")
-    load_mesh(twin.mesh_path)  # refuse a bad mesh once, before any worker starts
+    load_mesh_arrays(twin.mesh_path)  # refuse a bad mesh once, before any worker starts
     mesh_sha = file_sha256(twin.mesh_path)
     out = twin.references_dir
     _store(out).open()  # removes what writers killed in an earlier run left
     skipped: list[PoseResult] = []
     jobs: list[_Job] = []
     name = str(twin.root)
+    common = digest_inputs(mesh_sha, twin.camera, twin.perception, sensor, backend)
+    # shared by every job (each job's meta is its own copy: the workers extend it)
+    camera, perception, sensor_d = common["camera"], common["perception"], common["sensor"]
+    T_world_vine = np.asarray(twin.T_world_vine)
+    mesh_path = str(twin.mesh_path)
     for p in poses:
         s = pose_seed(seed, p.id)
-        digest = inputs_digest(
-            mesh_sha, p.T_vine_camera, twin.camera, twin.perception, sensor, backend, s
-        )
+        digest = pose_digest(common, p.T_vine_camera, s)
         if not force and _is_current(out, p.id, digest):
             skipped.append(PoseResult(p.id, "skipped", twin=name))
             continue
@@ -245,13 +249,13 @@ def plan_export(
             "cut_point": p.cut_point,
             "frame": "reference camera (OpenCV: +x right, +y down, +z forward), metres",
             "T_vine_camera": np.asarray(p.T_vine_camera).tolist(),
-            "T_world_camera": (np.asarray(twin.T_world_vine) @ p.T_vine_camera).tolist(),
+            "T_world_camera": (T_world_vine @ p.T_vine_camera).tolist(),
             "icp_variant": p.icp_variant,
-            "camera": twin.camera.to_dict(),
+            "camera": camera,
             "backend": backend,
             "noise_seed": s,
-            "sensor": sensor.to_dict(),
-            "perception": twin.perception.to_dict(),
+            "sensor": sensor_d,
+            "perception": perception,
             "mesh_sha256": mesh_sha,
             "inputs_sha256": digest,
             "vinetwin_version": vinetwin.__version__,
@@ -259,8 +263,7 @@ def plan_export(
         jobs.append(
             _Job(
                 name, p.id, np.asarray(p.T_vine_camera).tolist(), s, str(out), meta,
-                str(twin.mesh_path), backend, twin.camera.to_dict(), twin.perception.to_dict(),
-                sensor.to_dict(),
+                mesh_path, backend, camera, perception, sensor_d,
             )
         )  # fmt: skip
     return skipped, jobs

@@ -21,7 +21,7 @@ from vinetwin.executor import (
     workers_used,
 )
 from vinetwin.files import file_sha256
-from vinetwin.mesh import load_mesh
+from vinetwin.mesh import load_mesh_arrays
 from vinetwin.twin.model import Twin
 
 log = logging.getLogger(__name__)
@@ -45,11 +45,11 @@ class _TwinWorker:
         from vinetwin.camera import CameraModel
         from vinetwin.render.backends import scene_backend
 
-        self.mesh = load_mesh(ctx["mesh_path"])
+        self.vertices, self.faces = load_mesh_arrays(ctx["mesh_path"])
         cam = CameraModel.from_dict(ctx["camera"])
         # any thread: with one worker the jobs run in the caller's thread (a web server's)
         self.backend = scene_backend(
-            self.mesh.vertices, self.mesh.faces, cam, any_thread=True, threads=worker_threads()
+            self.vertices, self.faces, cam, any_thread=True, threads=worker_threads()
         )
         self.perception = PerceptionConfig.from_dict(ctx["perception"])
         self.arms: dict[tuple[str, bytes], Any] = {}
@@ -85,7 +85,7 @@ def worker_arm(ctx: dict[str, Any], robot: str | None, goal: Any) -> Any:
             robot or None,
             T_flange_camera=np.asarray(ctx["T_flange_camera"]),
             camera=w.backend.camera,
-            vine=(w.mesh.vertices, w.mesh.faces),
+            vine=(w.vertices, w.faces),
             T_base_vine=goal_placement(goal),
         )
     return w.arms[key]
