@@ -144,6 +144,7 @@ def test_mesh_arrays_read_as_trimesh_reads_them(tmp_path: Path, sample_twin_dir:
     def same(path: Path) -> None:
         V, F = load_mesh_arrays(path)
         m = trimesh.load(path, force="mesh", process=False)
+        assert isinstance(m, trimesh.Trimesh)
         assert V.dtype == np.float64 and F.dtype == np.int64
         assert np.array_equal(V, m.vertices) and np.array_equal(F, m.faces)
 
@@ -155,7 +156,9 @@ def test_mesh_arrays_read_as_trimesh_reads_them(tmp_path: Path, sample_twin_dir:
     V = V + rng.normal(0, 1e-3, V.shape)
     box = trimesh.Trimesh(V, F, process=False)
     for name, kwargs in (("le.ply", {"encoding": "binary"}), ("ascii.ply", {"encoding": "ascii"})):
-        (tmp_path / name).write_bytes(box.export(file_type="ply", **kwargs))
+        data = box.export(file_type="ply", **kwargs)
+        assert isinstance(data, bytes)
+        (tmp_path / name).write_bytes(data)
         same(tmp_path / name)
     assert _binary_ply_triangles(tmp_path / "ascii.ply") is None  # read by trimesh
     # big-endian, double vertices with extra properties, int16 counts, uint indices

@@ -96,7 +96,8 @@ def _binary_ply_triangles(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         if len(fprops) != 1 or len(fprops[0]) != 4 or fprops[0][0] != "list":
             return None
         count_t, index_t = _PLY_TYPES.get(fprops[0][1]), _PLY_TYPES.get(fprops[0][2])
-        if count_t is None or index_t is None or not all(k in vdtype.names for k in "xyz"):
+        names = vdtype.names or ()
+        if count_t is None or index_t is None or not all(k in names for k in "xyz"):
             return None
         fdtype = np.dtype([("n", order + count_t), ("i", order + index_t, 3)])
         start = stop + 1
