@@ -238,8 +238,8 @@ class App:
     def _sync_scene(self, twin: Any) -> None:
         """Brings the cut points, pose frustums, pose-to-cut lines and the gizmo in the page up
         to date with the twin, sending only what changed: a click adds one cut point and one
-        pose and recolours the previously selected pose, instead of the page rebuilding every
-        node (which made the page's update after a click grow with the twin's pose count)."""
+        pose and recolours the previously selected pose, instead of every node being removed
+        and sent again after each edit."""
         s = self.server.scene
         sess = self.session
         cam = twin.camera
