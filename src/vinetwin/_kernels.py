@@ -75,13 +75,21 @@ def gl_reverse_z_depth(
 ) -> None:
     """An OpenGL reverse-Z depth buffer (bottom row first) to metric z-depth, top row first:
     `d_coef / (b + c_coef)` in float64 (as `mujoco.Renderer` computes it), 0 at or beyond
-    `far_cut` (nothing hit); one pass instead of the renderer's float64 copy, flip and our mask."""
+    `far_cut` (nothing hit); one pass instead of the renderer's float64 copy, flip and our mask.
+    The buffer's cleared value (0, the far plane: most of a view of a vine) is converted once
+    (0.5-0.6 against 0.8-0.95 ms per 848x480 view of the sample, the same numbers)."""
     H, W = buf.shape
+    z0 = np.float32(d_coef / (0.0 + c_coef))
+    out0 = z0 if np.float64(z0) < far_cut else np.float32(0.0)
     for v in range(H):
         row = buf[H - 1 - v]
         for u in range(W):
-            z = np.float32(d_coef / (np.float64(row[u]) + c_coef))
-            out[v, u] = z if np.float64(z) < far_cut else np.float32(0.0)
+            x = row[u]
+            if x == 0:
+                out[v, u] = out0
+            else:
+                z = np.float32(d_coef / (np.float64(x) + c_coef))
+                out[v, u] = z if np.float64(z) < far_cut else np.float32(0.0)
 
 
 @nb.njit(cache=True, nogil=True)
