@@ -191,10 +191,10 @@ def _worker_env(workers: int) -> Iterator[None]:
     which spawned workers inherit before they import numpy, numba or Open3D (an initializer
     would run too late for the libraries that read it at load)."""
     threads = str(max(1, (os.cpu_count() or 1) // workers))
-    names = (*THREAD_VARS, "VINETWIN_WORKER_THREADS", LLVMPIPE_THREADS)
-    saved = {k: os.environ.get(k) for k in names}
-    os.environ.update({k: threads for k in names})
-    os.environ[LLVMPIPE_THREADS] = _llvmpipe_threads(int(threads))
+    values = {k: threads for k in (*THREAD_VARS, "VINETWIN_WORKER_THREADS")}
+    values[LLVMPIPE_THREADS] = _llvmpipe_threads(int(threads))
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
     try:
         yield
     finally:

@@ -41,10 +41,10 @@ more with: the fastest per view of the three (`benchmarks/render.py`: 6.5 ms aga
 see (`tests/test_render.py`). Where it cannot start (no EGL), `auto` takes `SINGLE_BACKEND`."""
 SINGLE_BACKEND: BackendName = "open3d"
 """What `auto` renders fewer views with, and where `BATCH_BACKEND` cannot start; code that renders
-a few views of a mesh it has just loaded (a reference rendered on the fly, the web app's preview)
-uses it too: Open3D builds its scene in 0.04-0.4 s where MuJoCo compiles the same vine in
+a few views of a mesh it has just loaded (a reference rendered on the fly) uses it too: Open3D builds its scene in 0.04-0.4 s where MuJoCo compiles the same vine in
 0.5-0.8 s (the sample) or 4-6 s (900k triangles), and needs no OpenGL. A simulation's scene,
-which renders a view per camera frame, takes the batch backend (`scene_backend`)."""
+which renders a view per camera frame, and the web app's previews take the batch backend
+(`scene_backend`)."""
 AUTO_MIN_VIEWS = 100
 """The batch size from which `auto` takes `BATCH_BACKEND`: where its faster views repay its
 slower start. Measured exports (`render.export`, its default workers; re-measured with the
@@ -87,6 +87,16 @@ def check_mesh(vertices: Any, faces: Any) -> tuple[npt.NDArray[np.float32], npt.
     return V.astype(np.float32), F.astype(np.uint32)
 
 
+def raycasting_scene(vertices: Any, faces: Any, threads: int = 0) -> Any:
+    """Open3D's ray-casting scene of a checked mesh (`threads`: 0, all cores): what
+    `Open3DBackend` renders with and the web app picks on."""
+    o3d = _lazy.open3d()
+    V, F = check_mesh(vertices, faces)
+    scene = o3d.t.geometry.RaycastingScene(nthreads=threads)
+    scene.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(F))
+    return scene
+
+
 class Open3DBackend:
     """Ray casting with Open3D's `RaycastingScene` (CPU, no OpenGL).
 
@@ -113,8 +123,7 @@ class Open3DBackend:
         self.camera = camera
         self.threads = threads
         self.coarse_step = coarse_step
-        self.scene = o3d.t.geometry.RaycastingScene(nthreads=threads)
-        self.scene.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(F))
+        self.scene = raycasting_scene(V, F, threads)
         # ray directions in the camera frame (z = 1), rotated per pose; t_hit is then z-depth
         self._dirs = camera.ray_directions().astype(np.float32)
 

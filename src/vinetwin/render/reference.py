@@ -120,20 +120,6 @@ def read_reference_cloud(path: Path) -> Cloud:
     return Cloud(pts, nrm)
 
 
-def inputs_digest(
-    mesh_sha256: str,
-    T_vine_camera: Any,
-    camera: CameraModel,
-    perception: PerceptionConfig,
-    sensor: SensorConfig,
-    backend: str,
-    seed: int,
-) -> str:
-    """Digest of everything a reference depends on: an unchanged digest means it can be skipped."""
-    common = digest_inputs(mesh_sha256, camera, perception, sensor, backend)
-    return pose_digest(common, T_vine_camera, seed)
-
-
 def digest_inputs(
     mesh_sha256: str,
     camera: CameraModel,
@@ -141,8 +127,8 @@ def digest_inputs(
     sensor: SensorConfig,
     backend: str,
 ) -> dict[str, Any]:
-    """The inputs every reference of one export shares, for `pose_digest` (made once per export:
-    the configs' dicts were a third of planning 1000 references)."""
+    """The inputs every reference of one export shares, for `pose_digest` (made once per
+    export, not once per pose)."""
     return {
         "format": REFERENCE_FORMAT,
         "mesh": mesh_sha256,
@@ -154,7 +140,8 @@ def digest_inputs(
 
 
 def pose_digest(common: dict[str, Any], T_vine_camera: Any, seed: int) -> str:
-    """`inputs_digest` from `digest_inputs`' shared part, one pose and its noise seed."""
+    """Digest of everything a reference depends on (`digest_inputs`' shared part, the pose, its
+    noise seed): an unchanged digest means the reference can be skipped."""
     T = np.round(np.asarray(T_vine_camera, dtype=np.float64), 12).tolist()
     blob = json.dumps({**common, "T": T, "seed": seed}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()

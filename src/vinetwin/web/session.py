@@ -103,15 +103,13 @@ class AuthoringSession:
             if r.name == "open3d":
                 self._picker = r.scene
             else:
-                from vinetwin.render.backends import check_mesh
+                from vinetwin.render.backends import raycasting_scene
 
-                o3d = _lazy.open3d()
-                V, F = check_mesh(self.vertices, self.faces)
-                scene = o3d.t.geometry.RaycastingScene()
-                scene.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(F))
+                scene = raycasting_scene(self.vertices, self.faces)
                 # Open3D builds the scene's BVH at its first query: now, not at the first click
                 # (75 ms on the sample)
-                scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], np.float32)))
+                ray = np.array([[0, 0, 0, 0, 0, 1]], np.float32)
+                scene.cast_rays(_lazy.open3d().core.Tensor(ray))
                 self._picker = scene
         return self._picker
 
