@@ -24,10 +24,12 @@ click:
 Each `--shading` (`WebConfig.shading`; default both, "fast" then "full") is a run of its own
 (a fresh server, browser and copy of the twin), so the two are compared in the same
 invocation. Prints the medians and the 90th percentiles against the issue's goal (150 ms);
-`--json` writes them, one entry per shading under "runs". Timings are of this machine, shared
-with whatever else runs on it.
+`--json` writes them, one entry per shading under "runs", each with the WebGL renderer the page
+reported. `--gl` picks how the page draws WebGL without a GPU (`vinetwin.web.browser.GL_ARGS`):
+Chromium's SwiftShader (the default, as in the tests) or the machine's Mesa llvmpipe through
+EGL. Timings are of this machine, shared with whatever else runs on it.
 
-    .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--shading fast full] [--json out.json]
+    .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--shading fast full] [--gl swiftshader|llvmpipe] [--json out.json]
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from typing import Any
 import numpy as np
 from results_file import write_json
 
-from vinetwin.web.browser import CHROMIUM, launch
+from vinetwin.web.browser import CHROMIUM, GL_ARGS, RENDERER_JS, Gl, launch
 from vinetwin.web.config import WebConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,7 +71,9 @@ def _status_text(page: Any) -> str:
     return str(page.evaluate(STATUS_JS))
 
 
-def run(twin_dir: Path, clicks: int, seed: int, config: WebConfig) -> dict[str, Any]:
+def run(
+    twin_dir: Path, clicks: int, seed: int, config: WebConfig, gl: Gl = "swiftshader"
+) -> dict[str, Any]:
     from playwright.sync_api import TimeoutError as PlaywrightTimeout
     from playwright.sync_api import sync_playwright
 
@@ -91,14 +95,16 @@ def run(twin_dir: Path, clicks: int, seed: int, config: WebConfig) -> dict[str, 
     app.session.click = timed_click  # type: ignore[method-assign]
     missed = 0
     frame_ms = float("nan")
+    renderer = ""
     rng = np.random.default_rng(seed)
     try:
         with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
-            ctx = launch(pw, profile)
+            ctx = launch(pw, profile, gl)
             page = ctx.new_page()
             page.goto(f"http://127.0.0.1:{port}")
             page.wait_for_selector("canvas", timeout=60_000)
             page.wait_for_timeout(5000)  # the scene and the mesh arrive
+            renderer = str(page.evaluate(RENDERER_JS))
             box = page.locator("canvas").first.bounding_box()
             assert box is not None
             cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
@@ -147,6 +153,7 @@ def run(twin_dir: Path, clicks: int, seed: int, config: WebConfig) -> dict[str, 
 
     return {
         "shading": config.shading,
+        "renderer": renderer,
         "measured": len(browser_ms),
         "missed": missed,
         "arrive_ms": stats(arrive_ms),
@@ -167,6 +174,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="jitter of the click positions")
     ap.add_argument("--shading", nargs="+", default=["fast", "full"], choices=["fast", "full"],
                     help="WebConfig.shading values to run, one after the other")  # fmt: skip
+    ap.add_argument("--gl", default="swiftshader", choices=sorted(GL_ARGS),
+                    help="how the page's WebGL is drawn: Chromium's SwiftShader or Mesa's "
+                         "llvmpipe through EGL (vinetwin.web.browser.GL_ARGS)")  # fmt: skip
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
     if not CHROMIUM.exists():
@@ -176,9 +186,12 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:  # each run edits a fresh copy
             twin_dir = Path(tmp) / args.twin.name
             shutil.copytree(args.twin, twin_dir)
-            runs[shading] = run(twin_dir, args.clicks, args.seed, WebConfig(shading=shading))
+            runs[shading] = run(
+                twin_dir, args.clicks, args.seed, WebConfig(shading=shading), args.gl
+            )
     print(f"web click to preview, twin {args.twin.name}, {args.clicks} clicks per shading, "
           f"goal {GOAL_MS:.0f} ms; median / p90 ms (missed: clicks that hit no cane)")  # fmt: skip
+    print(f"WebGL ({args.gl}): {next(iter(runs.values()))['renderer']}")
     print(f"{'shading':8} {'arrive':>12} {'server':>12} {'page':>12} {'idle':>12} {'missed':>7}")
 
     def cell(s: dict[str, float | None]) -> str:
@@ -190,7 +203,7 @@ def main() -> None:
         print(f"{shading:8} {cell(out['arrive_ms']):>12} {cell(out['server_ms']):>12} "
               f"{cell(out['browser_ms']):>12} {cell(out['idle_ms']):>12} {out['missed']:>7}")  # fmt: skip
     write_json(args.json, {"twin": args.twin.name, "clicks": args.clicks, "goal_ms": GOAL_MS,
-                           "runs": runs})  # fmt: skip
+                           "gl": args.gl, "runs": runs})  # fmt: skip
 
 
 if __name__ == "__main__":

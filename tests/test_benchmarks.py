@@ -97,7 +97,9 @@ def test_web_benchmark_quick(tmp_path: Path) -> None:
     out = tmp_path / "web.json"
     proc, data = _quick("web.py", out, "--clicks", "2")
     assert set(data["runs"]) == {"fast", "full"}  # both shadings, in the same invocation
+    assert data["gl"] == "swiftshader"
     for run in data["runs"].values():
+        assert "SwiftShader" in run["renderer"]  # what --gl asked for, as the page reports it
         assert run["measured"] + run["missed"] == 2 and run["measured"] >= 1
         for part in ("arrive_ms", "server_ms", "browser_ms"):
             assert run[part]["median"] > 0

@@ -110,9 +110,11 @@ def _free_port() -> int:
 
 
 def test_page_sends_only_what_changed(twin_dir: Path) -> None:
-    """After a click the app re-sends the new cut point and pose and recolours the pose that was
-    selected; the other nodes stay as they were sent. A deleted pose leaves the page, undo
-    brings it back, and the gizmo follows the selection."""
+    """After a click the app sends the new cut point and pose; the pose that was selected is
+    recoloured in place and the other nodes stay as they were sent. A deleted pose leaves the
+    page, undo brings it back. The gizmo and the preview's point cloud are moved and refilled,
+    never sent again (the page would compile their shaders again), and the preview's shader
+    keeper stays."""
     from vinetwin.web.app import serve
 
     app = serve(twin_dir, port=_free_port())
@@ -125,26 +127,42 @@ def test_page_sends_only_what_changed(twin_dir: Path) -> None:
         cuts = {cid: node[1] for cid, node in app._cut_nodes.items()}
         app.refresh()  # nothing changed: nothing is sent again
         assert all(app._pose_nodes[pid][1] is h for pid, h in sent.items())
-        was = sess.selected
-        origin, direction, _ = ray_at(twin)
-        hit = sess.click(origin, direction)
-        assert hit is not None
-        c, p = hit
+        keeper = app._shader_keeper
+        gizmos, previews = [], []
+        for _ in range(2):
+            was = sess.selected
+            origin, direction, _ = ray_at(twin)
+            hit = sess.click(origin, direction)
+            assert hit is not None
+            c, p = hit
+            app.refresh()
+            app._show_preview(p.id)
+            assert sess.selected == p.id and app._pose_nodes[p.id][1].color == (255, 120, 0)
+            assert c.id in app._cut_nodes
+            assert all(app._pose_nodes[pid][1] is h for pid, h in sent.items())  # none re-sent
+            if was:
+                assert app._pose_nodes[was][1].color == (40, 40, 200)
+                assert (app._pose_nodes[was][2].colors == (40, 40, 200)).all()
+            assert all(app._cut_nodes[cid][1] is h for cid, h in cuts.items())
+            assert app.gizmo is not None and app._gizmo_key is not None
+            assert app._gizmo_key[0] == p.id
+            T = np.asarray(p.T_vine_camera)
+            assert np.allclose(app.gizmo.position, T[:3, 3], atol=1e-6)
+            gizmos.append(app.gizmo)
+            previews.append(app._preview)
+            sent = {pid: node[1] for pid, node in app._pose_nodes.items()}
+        assert gizmos[0] is gizmos[1] and previews[0] is previews[1] is not None
+        assert app._preview.visible and len(app._preview.points) > 0
+        assert app._shader_keeper is keeper
+        last = sess.selected
+        assert last is not None
+        sess.delete_pose(last)
         app.refresh()
-        assert sess.selected == p.id and app._pose_nodes[p.id][1].color == (255, 120, 0)
-        assert c.id in app._cut_nodes
-        resent = [pid for pid, h in sent.items() if app._pose_nodes[pid][1] is not h]
-        assert resent == ([was] if was else [])
-        assert app._pose_nodes[was][1].color == (40, 40, 200)
-        assert all(app._cut_nodes[cid][1] is h for cid, h in cuts.items())
-        assert app.gizmo is not None and app._gizmo_key is not None and app._gizmo_key[0] == p.id
-        sess.delete_pose(p.id)
-        app.refresh()
-        assert p.id not in app._pose_nodes
+        assert last not in app._pose_nodes
         assert set(app._pose_nodes) == {q.id for q in sess._require().poses}
         sess.undo()
         app.refresh()
-        assert p.id in app._pose_nodes
+        assert last in app._pose_nodes
     finally:
         app.server.stop()
 
@@ -169,6 +187,34 @@ def test_shading_setting_reaches_the_page(twin_dir: Path) -> None:
             app.server.stop()
     with pytest.raises(InputError, match="shading"):
         WebConfig(shading="pretty")  # type: ignore[arg-type]
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
+def test_browser_draws_webgl_as_asked() -> None:
+    """`launch(gl=...)`: Chromium's SwiftShader by default, the machine's Mesa llvmpipe through
+    EGL when asked (what `benchmarks/web.py --gl llvmpipe` measures), as the page reports; an
+    unknown choice is refused by name."""
+    import ctypes.util
+
+    from playwright.sync_api import sync_playwright
+
+    from vinetwin.web.browser import RENDERER_JS
+
+    wanted = {"swiftshader": "SwiftShader"}
+    if ctypes.util.find_library("EGL"):
+        wanted["llvmpipe"] = "llvmpipe"
+    with sync_playwright() as pw:
+        for gl, name in wanted.items():
+            with tempfile.TemporaryDirectory() as profile:
+                ctx = launch(pw, profile, gl)  # type: ignore[arg-type]
+                try:
+                    page = ctx.new_page()
+                    page.set_content("<html><body></body></html>")
+                    assert name in page.evaluate(RENDERER_JS)
+                finally:
+                    ctx.close()
+        with pytest.raises(ValueError, match="gl must be one of"):
+            launch(pw, "/nonexistent", "metal")  # type: ignore[arg-type]
 
 
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")

@@ -103,6 +103,7 @@ class App:
         self._pose_nodes: dict[str, tuple[Any, ...]] = {}
         self.gizmo: Any = None
         self._gizmo_key: tuple[str, bytes] | None = None
+        self._preview: Any = None  # the preview's point cloud, once shown
         self._static_scene()
         self._bind()
         self.refresh()
@@ -149,6 +150,15 @@ class App:
         full = self.config.shading == "full"
         if not full:  # no shadow pass (the default lights cast one) in each frame
             s.configure_default_lights(enabled=True, cast_shadow=False)
+        # The page (viser's client) makes a new material for a point cloud whose colours change
+        # and disposes the old one; the shader program goes with the last material using it, so
+        # each preview compiled it again (50-150 ms a click where the page draws in software).
+        # Two points with colours of their own, never changed, keep the preview's program in use.
+        # They are far below the ground's grid and smaller than a pixel.
+        keep = np.array([[V[:, 0].mean(), V[:, 1].mean(), lo[2] - 10.0]] * 2, np.float32)
+        self._shader_keeper = s.add_point_cloud(
+            "/preview_shader", keep, np.array([[0, 0, 0], [1, 1, 1]], np.uint8), point_size=1e-6
+        )
         self.vine = s.add_mesh_simple(
             "/vine", V.astype(np.float32), F.astype(np.uint32), color=(140, 100, 70),
             material="standard" if full else "toon3", cast_shadow=full, receive_shadow=full,
@@ -271,19 +281,30 @@ class App:
             old = self._pose_nodes.get(pid)
             if old is not None and old[0] == key:
                 continue
+            wxyz, pos = viser_wxyz_position(T)
+            color = (255, 120, 0) if sel else (40, 40, 200)
+            end = cut if cut is not None else pos
+            segment = np.array([[pos, end]], np.float32)
+            if old is not None and old[0][3:] == key[3:]:
+                # the same frustum moved or recoloured: updated in place. A node removed and
+                # sent again makes the page compile its shaders again when its material was
+                # the last of its kind (100 ms a click where the page draws in software)
+                _, frustum, line = old
+                with self.server.atomic():
+                    frustum.wxyz, frustum.position, frustum.color = wxyz, pos, color
+                    line.points = segment
+                    line.colors = np.broadcast_to(np.array(color, np.uint8), (1, 2, 3)).copy()
+                self._pose_nodes[pid] = (key, frustum, line)
+                continue
             if old is not None:
                 for h in old[1:]:
                     h.remove()
-            wxyz, pos = viser_wxyz_position(T)
-            color = (255, 120, 0) if sel else (40, 40, 200)
             frustum = s.add_camera_frustum(
                 f"/poses/{pid}", fov=fov, aspect=cam.width / cam.height, scale=0.04,
                 color=color, wxyz=wxyz, position=pos, thickness=0.0015,
             )  # fmt: skip
-            end = cut if cut is not None else pos
             line = s.add_line_segments(
-                f"/axes/{pid}", np.array([[pos, end]], np.float32), color,
-                thickness=1.0, thickness_units="screen",
+                f"/axes/{pid}", segment, color, thickness=1.0, thickness_units="screen",
             )  # fmt: skip
             self._pose_nodes[pid] = (key, frustum, line)
         selected = poses.get(sess.selected)
@@ -297,12 +318,8 @@ class App:
         if self.gizmo is not None and self._gizmo_key == key:
             return
         wxyz, pos = viser_wxyz_position(T)
-        if (
-            self.gizmo is not None
-            and self._gizmo_key is not None
-            and self._gizmo_key[0] == selected.id
-        ):
-            self.gizmo.wxyz, self.gizmo.position = wxyz, pos  # the same pose moved
+        if self.gizmo is not None:  # moved to the pose (kept: see the frustums above)
+            self.gizmo.wxyz, self.gizmo.position = wxyz, pos
         else:
             self.gizmo = s.add_transform_controls("/gizmo", scale=0.05, wxyz=wxyz, position=pos)
             self.gizmo.on_update(self._on_gizmo)
@@ -440,9 +457,16 @@ class App:
             cam = np.asarray(self.session._require().pose(pose_id).T_vine_camera)
             z = (pts - cam[:3, 3]) @ cam[:3, 2]
             colors = _depth_rgb(z, float(z.min()), float(z.max()))
-            self.server.scene.add_point_cloud(
-                "/preview", pts.astype(np.float32), colors, point_size=0.002
-            )
+            if self._preview is None:
+                self._preview = self.server.scene.add_point_cloud(
+                    "/preview", pts.astype(np.float32), colors, point_size=0.002
+                )
+            else:  # updated in place (see `_sync_scene`): the page keeps its shaders
+                with self.server.atomic():  # points and colours of one size in each frame
+                    self._preview.points, self._preview.colors = pts.astype(np.float32), colors
+                    self._preview.visible = True
+        elif self._preview is not None:
+            self._preview.visible = False  # nothing seen: not another pose's points
         d = pv.depth
         valid = np.isfinite(d) & (d > 0)
         if valid.any():

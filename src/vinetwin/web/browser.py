@@ -5,20 +5,36 @@ Debian's `chromium`)."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 #: Where Debian installs Chromium.
 CHROMIUM = Path("/usr/bin/chromium")
 #: Flags for a headless run as root in a container, with nothing phoning home.
 CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--headless", "--no-sandbox", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
 ]  # fmt: skip
+#: How the page's WebGL is drawn without a GPU: "swiftshader", Chromium's own software
+#: renderer (needs nothing but Chromium; what the tests use), or "llvmpipe", the machine's Mesa
+#: through EGL (ANGLE's OpenGL ES back end; the EGL libraries MuJoCo's rendering installs), which
+#: drew the app's frames about twice as fast on the 2-core machine (`docs/web.md`).
+GL_ARGS: dict[str, list[str]] = {
+    "swiftshader": ["--disable-gpu"],
+    "llvmpipe": ["--use-angle=gl-egl", "--ignore-gpu-blocklist"],
+}
+Gl = Literal["swiftshader", "llvmpipe"]
+#: The page's WebGL renderer, as the page reports it.
+RENDERER_JS = """() => { const g = document.createElement('canvas').getContext('webgl2');
+    if (!g) return 'no WebGL2'; const e = g.getExtension('WEBGL_debug_renderer_info');
+    return String(e ? g.getParameter(e.UNMASKED_RENDERER_WEBGL) : g.getParameter(g.RENDERER)); }"""
 
 
-def launch(playwright: Any, profile_dir: str | Path) -> Any:
-    """A headless Chromium context (a 1200x800 page) with its profile in `profile_dir`."""
+def launch(playwright: Any, profile_dir: str | Path, gl: Gl = "swiftshader") -> Any:
+    """A headless Chromium context (a 1200x800 page) with its profile in `profile_dir`, its
+    WebGL drawn by `gl` (`GL_ARGS`)."""
+    if gl not in GL_ARGS:
+        raise ValueError(f"gl must be one of {sorted(GL_ARGS)}, not {gl!r}")
     return playwright.chromium.launch_persistent_context(
-        str(profile_dir), executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS,
-        viewport={"width": 1200, "height": 800},
+        str(profile_dir), executable_path=str(CHROMIUM), headless=True,
+        args=CHROMIUM_ARGS + GL_ARGS[gl], viewport={"width": 1200, "height": 800},
     )  # fmt: skip
