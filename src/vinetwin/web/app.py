@@ -152,7 +152,8 @@ class App:
             s.configure_default_lights(enabled=True, cast_shadow=False)
         # The page (viser's client) makes a new material for a point cloud whose colours change
         # and disposes the old one; the shader program goes with the last material using it, so
-        # each preview compiled it again (50-150 ms a click where the page draws in software).
+        # each preview compiled it again (with Mesa's llvmpipe: a median click 431 -> 275 ms
+        # without it, docs/web.md).
         # Two points with colours of their own, never changed, keep the preview's program in use.
         # They are far below the ground's grid and smaller than a pixel.
         keep = np.array([[V[:, 0].mean(), V[:, 1].mean(), lo[2] - 10.0]] * 2, np.float32)
