@@ -278,7 +278,8 @@ class App:
             T = np.asarray(p.T_vine_camera, float)
             cut = cuts.get(p.cut_point)
             sel = pid == sess.selected
-            key = (T.tobytes(), cut, sel, fov, cam.width / cam.height)
+            shape = (fov, cam.width / cam.height)
+            key = (T.tobytes(), cut, sel, shape)
             old = self._pose_nodes.get(pid)
             if old is not None and old[0] == key:
                 continue
@@ -286,10 +287,10 @@ class App:
             color = (255, 120, 0) if sel else (40, 40, 200)
             end = cut if cut is not None else pos
             segment = np.array([[pos, end]], np.float32)
-            if old is not None and old[0][3:] == key[3:]:
+            if old is not None and old[0][3] == shape:
                 # the same frustum moved or recoloured: updated in place. A node removed and
                 # sent again makes the page compile its shaders again when its material was
-                # the last of its kind (100 ms a click where the page draws in software)
+                # the last of its kind (docs/web.md)
                 _, frustum, line = old
                 with self.server.atomic():
                     frustum.wxyz, frustum.position, frustum.color = wxyz, pos, color
@@ -458,13 +459,14 @@ class App:
             cam = np.asarray(self.session._require().pose(pose_id).T_vine_camera)
             z = (pts - cam[:3, 3]) @ cam[:3, 2]
             colors = _depth_rgb(z, float(z.min()), float(z.max()))
+            pts32 = pts.astype(np.float32)
             if self._preview is None:
                 self._preview = self.server.scene.add_point_cloud(
-                    "/preview", pts.astype(np.float32), colors, point_size=0.002
+                    "/preview", pts32, colors, point_size=0.002
                 )
             else:  # updated in place (see `_sync_scene`): the page keeps its shaders
                 with self.server.atomic():  # points and colours of one size in each frame
-                    self._preview.points, self._preview.colors = pts.astype(np.float32), colors
+                    self._preview.points, self._preview.colors = pts32, colors
                     self._preview.visible = True
         elif self._preview is not None:
             self._preview.visible = False  # nothing seen: not another pose's points
