@@ -510,6 +510,119 @@ def _lm_step(
 
 
 @nb.njit(cache=True, nogil=True)
+def disc_residual(
+    x0: float, x1: float, x2: float, y: np.ndarray, nrm: np.ndarray, j: Any, radius: float
+) -> tuple[float, float, float, float]:
+    """The distance from point x to reference surfel j, a disc of `radius` about point j with
+    normal j, and its gradient in x: over the disc the signed height above it (gradient: the
+    normal), past its rim the distance to the rim (gradient: the unit vector from the rim)."""
+    e0, e1, e2 = x0 - y[j, 0], x1 - y[j, 1], x2 - y[j, 2]
+    n0, n1, n2 = nrm[j, 0], nrm[j, 1], nrm[j, 2]
+    h = e0 * n0 + e1 * n1 + e2 * n2
+    t0, t1, t2 = e0 - h * n0, e1 - h * n1, e2 - h * n2
+    tt = t0 * t0 + t1 * t1 + t2 * t2
+    if tt <= radius * radius:
+        return h, n0, n1, n2
+    tn = math.sqrt(tt)
+    out = tn - radius
+    d = math.sqrt(h * h + out * out)
+    g0 = (h * n0 + out * t0 / tn) / d
+    g1 = (h * n1 + out * t1 / tn) / d
+    g2 = (h * n2 + out * t2 / tn) / d
+    return d, g0, g1, g2
+
+
+@nb.njit(cache=True, nogil=True)
+def _rho(r: float, huber: float) -> float:
+    """The Huber kernel of a residual (the square when huber is 0)."""
+    a = abs(r)
+    if huber > 0 and a > huber:
+        return 2.0 * huber * a - huber * huber
+    return r * r
+
+
+@nb.njit(cache=True, nogil=True)
+def _lm_surface_cost(
+    q: np.ndarray,
+    y: np.ndarray,
+    nrm: np.ndarray,
+    idx: np.ndarray,
+    sel: np.ndarray,
+    dT: np.ndarray,
+    huber: float,
+    radius: float,
+) -> float:
+    cost = 0.0
+    for s in range(sel.shape[0]):
+        i = sel[s]
+        x0 = dT[0, 0] * q[i, 0] + dT[0, 1] * q[i, 1] + dT[0, 2] * q[i, 2] + dT[0, 3]
+        x1 = dT[1, 0] * q[i, 0] + dT[1, 1] * q[i, 1] + dT[1, 2] * q[i, 2] + dT[1, 3]
+        x2 = dT[2, 0] * q[i, 0] + dT[2, 1] * q[i, 1] + dT[2, 2] * q[i, 2] + dT[2, 3]
+        cost += _rho(disc_residual(x0, x1, x2, y, nrm, idx[i], radius)[0], huber)
+    return cost
+
+
+@nb.njit(cache=True, nogil=True)
+def _lm_surface_step(
+    q: np.ndarray,
+    y: np.ndarray,
+    nrm: np.ndarray,
+    idx: np.ndarray,
+    sel: np.ndarray,
+    mu: float,
+    huber: float,
+    radius: float,
+    tol_t: float,
+    tol_r: float,
+) -> tuple[np.ndarray, float, bool]:
+    """One Levenberg-Marquardt step on the distances of the paired current points to the
+    reference surface, modelled as discs about its points (`disc_residual`): fixed pairs, IRLS
+    weights for the Huber kernel, damping scaled by the Hessian's diagonal (Marquardt). Returns
+    the accepted step (an update below the tolerances is returned untested: the level has
+    converged; identity if no damping lowers the cost), the new damping, and whether the pairs
+    leave a motion unconstrained (a plane, a straight cane: the step is then identity)."""
+    A = np.zeros((6, 6))
+    g = np.zeros(6)
+    J = np.empty(6)
+    cost0 = 0.0
+    for s in range(sel.shape[0]):
+        i = sel[s]
+        x0, x1, x2 = q[i, 0], q[i, 1], q[i, 2]
+        r, u0, u1, u2 = disc_residual(x0, x1, x2, y, nrm, idx[i], radius)
+        cost0 += _rho(r, huber)
+        w = 1.0
+        a = abs(r)
+        if huber > 0 and a > huber:
+            w = huber / a
+        # d r / d (t, w) for x' = x + w x x + t
+        J[0], J[1], J[2] = u0, u1, u2
+        J[3] = x1 * u2 - x2 * u1
+        J[4] = x2 * u0 - x0 * u2
+        J[5] = x0 * u1 - x1 * u0
+        for k in range(6):
+            g[k] += w * J[k] * r
+            for c in range(k, 6):
+                A[k, c] += w * J[k] * J[c]
+    for k in range(6):
+        for c in range(k):
+            A[k, c] = A[c, k]
+    if not _well_posed(A):
+        return np.eye(4), mu, True
+    for _ in range(12):
+        M = A.copy()
+        for k in range(6):
+            M[k, k] += mu * A[k, k]
+        x = np.linalg.solve(M, -g)
+        dT = _pose(_rodrigues(x[3:]), x[:3])
+        if _small(dT, tol_t, tol_r):
+            return dT, mu, False
+        if _lm_surface_cost(q, y, nrm, idx, sel, dT, huber, radius) < cost0:
+            return dT, max(mu / 10.0, 1e-9), False
+        mu *= 10.0
+    return np.eye(4), mu, False
+
+
+@nb.njit(cache=True, nogil=True)
 def _symmetric_pose(x: np.ndarray) -> np.ndarray:
     """Rusinkiewicz's step: R_half * Trans(t cos(theta)) * R_half, theta = atan(|a|)."""
     a = x[3:]
@@ -561,11 +674,14 @@ def register_level(
     threads: int,
     accelerate: bool,
     proj: Any,
+    lm_radius: float = 0.0,
 ) -> tuple[np.ndarray, int, int, int, float]:
     """One level of ICP from T0. Returns (T, status, iterations, pairs, rmse of the last
     association). `tree` is `NNTree.arrays`; `nrm` and `use` are in its point order. `proj`:
     a `ProjectiveIndex`'s arrays over the same points for projective association, or
-    `NO_PROJECTIVE` for the tree's exact closest points."""
+    `NO_PROJECTIVE` for the tree's exact closest points. `lm_radius` > 0: LM minimises the
+    distances to the reference surface as discs of this radius about its points (`nrm` then
+    holds their normals), else the distances to the points."""
     pts = tree[0]
     T = T0.copy()
     n, q, idx, d2, chunks, size = _buffers(src, threads)
@@ -605,6 +721,12 @@ def register_level(
                 continue
         if variant == 0:
             dT = _kabsch_step(q, pts, idx, sel)
+        elif variant == 1 and lm_radius > 0:
+            dT, mu, singular = _lm_surface_step(
+                q, pts, nrm, idx, sel, mu, huber, lm_radius, tol_t, tol_r
+            )
+            if singular:
+                return T, SINGULAR, it, npairs, rmse
         elif variant == 1:
             dT, mu = _lm_step(q, pts, idx, sel, mu, huber)
         else:
@@ -628,7 +750,7 @@ def register_level(
         if _small(dT, tol_t, tol_r):
             return dT @ T, CONVERGED, it, npairs, rmse
         step = _step_vector(dT)
-        if accelerate and variant <= 1:
+        if accelerate and (variant == 0 or (variant == 1 and lm_radius <= 0)):
             # Besl & McKay's acceleration, simplified: while successive updates point the same
             # way, take a growing multiple of the update; undo it if the energy rises
             if cooldown > 0:

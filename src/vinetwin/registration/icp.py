@@ -1,8 +1,11 @@
 """ICP: the pose of the current camera in the reference camera frame, four variants.
 
 - `point_to_point`: closed-form SVD step on closest-point pairs (Besl & McKay 1992);
-- `lm`: Levenberg-Marquardt on the point-to-point residuals, optionally Huber-weighted
-  (Fitzgibbon 2003);
+- `lm`: Levenberg-Marquardt ICP (Fitzgibbon 2003): the Huber-robust distance of each current
+  point to the reference, minimised by Levenberg-Marquardt. By default the distance to the
+  reference surface, modelled as a disc about each reference point (`ICPConfig.lm_model`
+  "surface"); "points": the distance to the closest reference point, point-to-point's
+  residuals (what PCL's IterativeClosestPointNonLinear minimises);
 - `point_to_plane`: linearised 6x6 solve of `sum ((R p + t - q) . n_q)^2` (Chen & Medioni 1992);
 - `symmetric`: `sum ((n_p + n_q) . (R p - R^-1 q + t))^2`, linearised with half rotations
   (Rusinkiewicz 2019).
@@ -43,19 +46,22 @@ from vinetwin.registration._kernels import NNTree
 
 NDF = npt.NDArray[np.float64]
 
-#: Default edge-of-view rejection reach per variant (m); absent: none.
-EDGE_REACH = {"point_to_plane": 0.003, "point_to_point": 0.01, "lm": 0.01}
+#: Default edge-of-view rejection reach per variant (m); absent: none. LM with
+#: `lm_model="points"` takes point-to-point's defaults (reach, schedule, final-level edges).
+EDGE_REACH = {"point_to_plane": 0.003, "point_to_point": 0.01, "lm": 0.003}
 #: Default levels before the final one per variant (`ICPConfig.schedule`).
 SCHEDULES: dict[str, tuple[tuple[float, float], ...]] = {
     "point_to_plane": ((0.004, 0.03), (0.0, 0.01)),
     "symmetric": ((0.004, 0.03), (0.0, 0.01)),
     "point_to_point": ((0.0, 0.03), (0.0, 0.01)),
-    "lm": ((0.0, 0.03), (0.0, 0.01)),
+    "lm": ((0.004, 0.03), (0.0, 0.01)),
 }
+#: What LM measures a current point's distance to (`ICPConfig.lm_model`).
+LM_MODELS = ("surface", "points")
 #: How ICP levels pair points (`ICPConfig.association`).
 ASSOCIATIONS = ("tree", "projective")
 #: Variants whose edge rejection also applies at the final level (the others: coarse levels only).
-EDGE_FINAL = frozenset({"point_to_plane"})
+EDGE_FINAL = frozenset({"point_to_plane", "lm"})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -76,12 +82,13 @@ class ICPConfig:
     """Levels run before the final one, coarse to fine: (voxel size m, correspondence distance
     m). Voxel 0 uses the clouds as given. The final level is (0, max_correspondence_distance).
     None: the variant's default, `SCHEDULES` (a 3 cm reach then 1 cm; the 3 cm level on 4 mm
-    copies of the clouds for point-to-plane and symmetric, whose answer the finer levels then
-    settle: on 2 mm clouds it halves their time at equal accuracy, benchmarks/icp.py;
-    point-to-point and LM, which creep along the canes, keep the clouds as given)."""
+    copies of the clouds for point-to-plane, symmetric and LM on the surface, whose answer the
+    finer levels then settle: on 2 mm clouds it halves their time at equal accuracy,
+    benchmarks/icp.py; point-to-point and LM on points, which creep along the canes, keep the
+    clouds as given)."""
     accelerate: bool = True
-    """Point-to-point and LM: while successive updates point the same way, take up to 16 times
-    the update, undone if the energy rises (after Besl & McKay's accelerated ICP)."""
+    """Point-to-point and LM on points: while successive updates point the same way, take up to
+    16 times the update, undone if the energy rises (after Besl & McKay's accelerated ICP)."""
     coarse_tolerance: float = 0.0
     """Levels before the final one also stop when an update moves less than this fraction of
     their reach (and turns less than that distance at a 10 cm lever arm); 0: the tolerances
@@ -90,8 +97,8 @@ class ICPConfig:
     """With the reference's camera given to ICP: pairs whose reference point lies within
     min(this, the level's reach) of the edge of the reference view are rejected (m). None: the
     variant's default, `EDGE_REACH` (measured on the sample's views, benchmarks/icp.py: it
-    helps point-to-plane, and costs symmetric accuracy; point-to-point and LM use it at their
-    coarse levels only, see `edge_final`)."""
+    helps point-to-plane and LM on the surface, and costs symmetric accuracy; point-to-point
+    and LM on points use it at their coarse levels only, see `edge_final`)."""
     edge_final: bool | None = None
     """Also reject edge pairs at the final level (False: only at the coarse levels, where a
     current view reaching past the reference's drags the estimate along the canes; at the
@@ -124,6 +131,22 @@ class ICPConfig:
     point-to-plane from 2 cm / 3 deg: 184 mm off, fitness 0.11). 0: no check."""
     huber_delta: float = 0.0
     """LM only: Huber kernel width (m); 0 disables the robust kernel."""
+    lm_model: str = "surface"
+    """LM only: what a current point's distance is measured to. "surface": the reference
+    surface, a disc about each reference point (its normal, radius `lm_disc_radius`): the
+    height above the disc, or past its rim the distance to the rim (Fitzgibbon's distance to
+    the model, for a sampled surface; needs reference normals). "points": the closest
+    reference point, point-to-point's residuals (the form PCL minimises). Measured on three
+    vines' 2 and 4 mm views (benchmarks/icp.py, docs/results/speed.md): "points" settles 0.2-1.1
+    mm (median) from the truth, held by the voxel lattice (the closest sample is not the
+    correspondent), and needs 33-62 iterations; "surface" 0.07-0.24 mm in 13-21 iterations.
+    "points" takes point-to-point's defaults for `schedule` and edge rejection, "surface"
+    point-to-plane's."""
+    lm_disc_radius: float = 1.0
+    """LM "surface": a reference point's disc radius, in the level's point spacing (its voxel,
+    or for the clouds as given the median distance between neighbouring reference points): 1
+    reaches the neighbouring points, so only where the surface ends (a cane's tip, the edge
+    of what the reference saw) does a point's distance grow along it."""
     association: str = "projective"
     """How a level pairs points: "tree", the exact closest reference point (k-d tree), or
     "projective", the closest among the reference points that project within
@@ -148,6 +171,12 @@ class ICPConfig:
             raise InputError(
                 f"unknown ICP variant '{self.variant}'; choose one of: {', '.join(ICP_VARIANTS)}"
             )
+        if self.lm_model not in LM_MODELS:
+            raise InputError(
+                f"unknown lm_model '{self.lm_model}'; choose one of: {', '.join(LM_MODELS)}"
+            )
+        if not self.lm_disc_radius > 0:
+            raise InputError("lm_disc_radius must be positive")
         if self.association not in ASSOCIATIONS:
             raise InputError(
                 f"unknown association '{self.association}'; choose one of: "
@@ -161,19 +190,33 @@ class ICPConfig:
                     f"schedule level {level!r} is not (voxel >= 0, correspondence distance > 0)"
                 )
 
+    @property
+    def lm_surface(self) -> bool:
+        """LM on the distances to the reference surface (`lm_model` "surface")."""
+        return self.variant == "lm" and self.lm_model == "surface"
+
+    @property
+    def needs_reference_normals(self) -> bool:
+        """Whether the objective reads the reference's normals."""
+        return self.variant in ("point_to_plane", "symmetric") or self.lm_surface
+
+    def _defaults_of(self) -> str:
+        """The variant whose defaults (schedule, edge rejection) apply."""
+        return "point_to_point" if self.variant == "lm" and not self.lm_surface else self.variant
+
     def edge_reach_m(self) -> float:
         """The edge-of-view reach in use (m)."""
         if self.edge_reach is not None:
             return self.edge_reach
-        return EDGE_REACH.get(self.variant, 0.0)
+        return EDGE_REACH.get(self._defaults_of(), 0.0)
 
     def edge_at_final(self) -> bool:
         """Whether the final level rejects edge pairs too."""
-        return self.variant in EDGE_FINAL if self.edge_final is None else self.edge_final
+        return self._defaults_of() in EDGE_FINAL if self.edge_final is None else self.edge_final
 
     def levels(self) -> list[tuple[float, float]]:
         """All levels, the final one included: (voxel size, correspondence distance)."""
-        schedule = SCHEDULES[self.variant] if self.schedule is None else self.schedule
+        schedule = SCHEDULES[self._defaults_of()] if self.schedule is None else self.schedule
         return [*schedule, (0.0, self.max_correspondence_distance)]
 
     @classmethod
@@ -235,6 +278,8 @@ class _Level:
     """False for reference points at the edge of the reference view (tree order)."""
     proj: tuple[np.ndarray, ...] = K.NO_PROJECTIVE
     """The level's `ProjectiveIndex` arrays when it pairs by projection."""
+    lm_radius: float = 0.0
+    """LM "surface": the reference points' disc radius at this level (m); 0: LM on points."""
 
 
 def view_edge_mask(
@@ -263,17 +308,21 @@ def _threads() -> int:
     return int(numba.get_num_threads())
 
 
-def _projective_index(
-    points: NDF, camera: CameraModel, voxel: float, cfg: ICPConfig
-) -> tuple[np.ndarray, ...]:
-    """A level's `ProjectiveIndex`, its cells the level's point spacing (its voxel, or for the
-    clouds as given the median distance between neighbouring reference points)."""
-    spacing = voxel
-    if spacing <= 0 and len(points) > 1:
-        from scipy.spatial import KDTree
+def _spacing(points: NDF, voxel: float) -> float:
+    """A level's point spacing: its voxel, or for the clouds as given the median distance
+    between neighbouring reference points (0 for fewer than two points)."""
+    if voxel > 0 or len(points) < 2:
+        return voxel
+    from scipy.spatial import KDTree
 
-        d, _ = KDTree(points).query(points, k=2)
-        spacing = float(np.median(d[:, 1]))
+    d, _ = KDTree(points).query(points, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def _projective_index(
+    points: NDF, camera: CameraModel, spacing: float, cfg: ICPConfig
+) -> tuple[np.ndarray, ...]:
+    """A level's `ProjectiveIndex`, its cells the level's point spacing (`_spacing`)."""
     idx = K.ProjectiveIndex(
         points, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
         max(spacing, 1e-4), cfg.projective_window,
@@ -315,14 +364,15 @@ class ICP:
         perception's max_depth); with them, pairs that land within a level's reach of the edge
         of that view are rejected. `final_reference`: the same view sampled more densely (the
         reference depth at a finer voxel, `render.reference.dense_cloud`), which the final
-        level pairs against instead: point-to-point and LM then land between the points of the
-        voxel lattice (the overlap and coverage rules still count the reference's own points)."""
+        level pairs against instead: point-to-point and LM on points then land between the
+        points of the voxel lattice (the overlap and coverage rules still count the reference's
+        own points)."""
         self.config = config or ICPConfig()
         self.reference = reference
         self._camera = camera
         self._max_depth = max_depth
         self._coverage_tree: NNTree | None = None
-        need_n = self.config.variant in ("point_to_plane", "symmetric")
+        need_n = self.config.needs_reference_normals
         self.problem = _check_cloud(reference, "reference", self.config.min_points, need_n)
         self._levels: list[_Level] = []
         if self.problem:
@@ -361,13 +411,18 @@ class ICP:
                     tree.points, camera, min(dmax, self.config.edge_reach_m()), max_depth
                 )
             proj = K.NO_PROJECTIVE
-            if (
+            projective = (
                 camera is not None
                 and self.config.association == "projective"
                 and dmax <= self.config.projective_reach + 1e-12
-            ):
-                proj = _projective_index(tree.points, camera, voxel, self.config)
-            self._levels.append(_Level(voxel, dmax, tree, nrm, use, proj))
+            )
+            lm_surface = self.config.lm_surface
+            spacing = _spacing(tree.points, voxel) if projective or lm_surface else 0.0
+            if projective:
+                assert camera is not None
+                proj = _projective_index(tree.points, camera, spacing, self.config)
+            radius = self.config.lm_disc_radius * max(spacing, 1e-4) if lm_surface else 0.0
+            self._levels.append(_Level(voxel, dmax, tree, nrm, use, proj, radius))
 
     def align(self, current: Cloud, T_init: Any = None) -> ICPResult:
         """Estimates T_ref_cur from the current cloud, starting at T_init (identity if None)."""
@@ -403,7 +458,7 @@ class ICP:
                     src, src_n, t.arrays, lv.normals, lv.use, T, lv.dmax, code,
                     cfg.max_iterations, tol_t, tol_r,
                     cfg.min_correspondences, cfg.huber_delta, _threads(), cfg.accelerate,
-                    lv.proj,
+                    lv.proj, lv.lm_radius,
                 )  # fmt: skip
             except np.linalg.LinAlgError as exc:  # a safety net: the kernels test what they solve
                 return ICPResult(T, False, iterations=total, reason=f"numerical failure: {exc}")
@@ -499,7 +554,7 @@ class ICP:
             nxt, _st, _it, _p, _r = K.register_level(
                 src[0], src[1], lv.tree.arrays, lv.normals, lv.use, states[-1], lv.dmax, code,
                 1, 0.0, 0.0, cfg.min_correspondences, cfg.huber_delta, _threads(), False,
-                lv.proj,
+                lv.proj, lv.lm_radius,
             )  # fmt: skip
             states.append(nxt)
         spread_t = spread_r = 0.0

@@ -25,8 +25,9 @@ Variant = Literal["point_to_point", "lm", "point_to_plane", "symmetric"]
 Law = Literal["eq8", "target"]
 LAWS: tuple[str, ...] = get_args(Law)
 #: The variants that pair their final level against a dense reference (`dense_reference`), and
-#: how much denser it is (the perception voxel divided by this).
-DENSE_VARIANTS = frozenset({"point_to_point", "lm"})
+#: how much denser it is (the perception voxel divided by this). LM measures its distances to
+#: the reference surface (`ICPConfig.lm_model`), which the lattice does not hold.
+DENSE_VARIANTS = frozenset({"point_to_point"})
 DENSE_FACTOR = 4
 #: Where each frame's ICP starts (see `servo.step.Servo`).
 Guess = Literal["kinematic", "previous", "identity"]
@@ -160,9 +161,9 @@ class ServoConfig(JsonFields):
     guess: Guess = "kinematic"
     """Where ICP starts each frame: kinematic (eq. 11), previous or identity."""
     dense_reference: bool = True
-    """Point-to-point and LM: pair the final ICP level against the reference depth seen through
-    the perception chain at a quarter of its voxel (`DENSE_FACTOR`), so they are not held to
-    the voxel lattice (about 1-2 mm at 4 mm voxels; measured in `docs/servo.md`)."""
+    """Point-to-point (`DENSE_VARIANTS`): pair the final ICP level against the reference depth
+    seen through the perception chain at a quarter of its voxel (`DENSE_FACTOR`), so it is not
+    held to the voxel lattice (about 1-2 mm at 4 mm voxels; measured in `docs/servo.md`)."""
     law: Law = "eq8"
     """Control law: eq8 (the paper's) or target (keeps the cut in view: its image moves on a
     straight line)."""
