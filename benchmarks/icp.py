@@ -7,10 +7,11 @@ known offset from it, each with its own noise), at 4 mm and 2 mm voxels. Starts:
 
 Every method runs the levels of our variant of its objective (`ICPConfig`'s defaults): warm,
 reach 3 cm (on 4 mm copies of the clouds for point-to-plane, symmetric and GICP; on the clouds
-as given for point-to-point and LM), 1 cm, then 5 mm on the clouds as given; identity,
-`ICPConfig.coarse_to_fine()` (16 mm and 8 mm voxels, then 12 mm and 5 mm reach). Ours pairs
-points by projection into the reference view at the levels of 1 cm reach or less
-(`ICPConfig.association`), the peers by their k-d trees. Each
+as given for point-to-point), 1 cm, then 5 mm on the clouds as given; identity,
+`ICPConfig.coarse_to_fine()` (16 mm and 8 mm voxels, then 12 mm and 5 mm reach). Our
+point-to-plane and symmetric pair points by projection into the reference view at the levels of
+1 cm reach or less, our point-to-point and LM by the exact tree (`ICPConfig.association`'s
+per-variant default), the peers by their k-d trees. Each
 peer gets what it would keep between frames of a servo built once: the reference's downsampled
 copies, normals and (small_gicp) k-d tree; the current cloud's downsampling, conversion and (for
 GICP) covariances are timed. Open3D's legacy API rebuilds the target's tree on every call; that is
@@ -403,8 +404,8 @@ def main() -> None:
     )  # fmt: skip
     ap.add_argument(
         "--association", choices=ASSOCIATIONS, default=None,
-        help="our ICP's association (default: ICPConfig's, projective at the fine levels); "
-        "tree: the exact k-d tree at every level, to compare",
+        help="our ICP's association for every variant (default: each variant's, "
+        "ICPConfig.association_in_use); tree: the exact k-d tree at every level, to compare",
     )  # fmt: skip
     args = ap.parse_args()
     if args.quick:
@@ -422,7 +423,7 @@ def main() -> None:
     results: dict[str, Any] = {
         "twin": twin.name,
         "trials": args.trials,
-        "association": args.association or ICPConfig().association,
+        "association": args.association or "per variant (ICPConfig.association_in_use)",
         "decimation": twin.perception.decimation,
         "tables": [],
         "cycles": [],

@@ -528,3 +528,18 @@ def test_lm_settings_are_checked_and_named() -> None:
             ref.edge_reach_m(),
             ref.edge_at_final(),
         )
+
+
+def test_association_defaults_per_variant() -> None:
+    """Point-to-point and LM pair by the exact tree by default, point-to-plane and symmetric by
+    projection (the field profile's measurements, `ASSOCIATION_DEFAULTS`); an explicit choice
+    wins, and an unknown one is named."""
+    from vinetwin.errors import InputError
+
+    want = {"point_to_point": "tree", "lm": "tree", "point_to_plane": "projective",
+            "symmetric": "projective"}  # fmt: skip
+    for variant, assoc in want.items():
+        assert ICPConfig(variant=variant).association_in_use == assoc
+        assert ICPConfig(variant=variant, association="tree").association_in_use == "tree"
+    with pytest.raises(InputError, match="choose one of: tree, projective"):
+        ICPConfig(association="nearest")

@@ -60,6 +60,16 @@ SCHEDULES: dict[str, tuple[tuple[float, float], ...]] = {
 LM_MODELS = ("surface", "points")
 #: How ICP levels pair points (`ICPConfig.association`).
 ASSOCIATIONS = ("tree", "projective")
+#: Default association per variant (`ICPConfig.association` None). Point-to-point and LM pair
+#: by the exact tree: under the field profile (a reconstructed twin, every error source;
+#: `vinetwin campaign --profile field`, Table 1's starts, seed 0) projective association left
+#: them twice as far off in rotation on the sample (0.010-0.012 against 0.0044-0.0062 rad) and
+#: no closer on the hydroshoot and dense vines; point-to-plane and symmetric did as well with it
+#: (docs/results/speed.md, "Projective association in the field").
+ASSOCIATION_DEFAULTS = {
+    "point_to_point": "tree", "lm": "tree",
+    "point_to_plane": "projective", "symmetric": "projective",
+}  # fmt: skip
 #: Variants whose edge rejection also applies at the final level (the others: coarse levels only).
 EDGE_FINAL = frozenset({"point_to_plane", "lm"})
 
@@ -147,8 +157,10 @@ class ICPConfig:
     or for the clouds as given the median distance between neighbouring reference points): 1
     reaches the neighbouring points, so only where the surface ends (a cane's tip, the edge
     of what the reference saw) does a point's distance grow along it."""
-    association: str = "projective"
-    """How a level pairs points: "tree", the exact closest reference point (k-d tree), or
+    association: str | None = None
+    """How a level pairs points (None: the variant's default, `ASSOCIATION_DEFAULTS`: the tree
+    for point-to-point and LM, projective for point-to-plane and symmetric): "tree", the exact
+    closest reference point (k-d tree), or
     "projective", the closest among the reference points that project within
     `projective_window` cells of the current point's pixel in the reference camera's image
     (`_kernels.ProjectiveIndex`; a cell is the reference's point spacing). Projective
@@ -177,7 +189,7 @@ class ICPConfig:
             )
         if not self.lm_disc_radius > 0:
             raise InputError("lm_disc_radius must be positive")
-        if self.association not in ASSOCIATIONS:
+        if self.association is not None and self.association not in ASSOCIATIONS:
             raise InputError(
                 f"unknown association '{self.association}'; choose one of: "
                 f"{', '.join(ASSOCIATIONS)}"
@@ -189,6 +201,11 @@ class ICPConfig:
                 raise InputError(
                     f"schedule level {level!r} is not (voxel >= 0, correspondence distance > 0)"
                 )
+
+    @property
+    def association_in_use(self) -> str:
+        """The association in use: `association`, or the variant's default."""
+        return self.association or ASSOCIATION_DEFAULTS[self.variant]
 
     @property
     def lm_surface(self) -> bool:
@@ -413,7 +430,7 @@ class ICP:
             proj = K.NO_PROJECTIVE
             projective = (
                 camera is not None
-                and self.config.association == "projective"
+                and self.config.association_in_use == "projective"
                 and dmax <= self.config.projective_reach + 1e-12
             )
             lm_surface = self.config.lm_surface
