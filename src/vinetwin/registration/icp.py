@@ -147,9 +147,10 @@ class ICPConfig:
     height above the disc, or past its rim the distance to the rim (Fitzgibbon's distance to
     the model, for a sampled surface; needs reference normals). "points": the closest
     reference point, point-to-point's residuals (the form PCL minimises). Measured on three
-    vines' 2 and 4 mm views (benchmarks/icp.py, docs/results/speed.md): "points" settles 0.2-1.1
-    mm (median) from the truth, held by the voxel lattice (the closest sample is not the
-    correspondent), and needs 33-62 iterations; "surface" 0.07-0.24 mm in 13-21 iterations.
+    vines' 2 and 4 mm views from 2 cm / 3 deg starts (benchmarks/icp.py,
+    docs/results/speed.md): "points" settles 0.22-2.45 mm (median) from the truth, held by the
+    voxel lattice (the closest sample is not the correspondent), in 30-46 iterations; "surface"
+    0.07-0.20 mm in 14-24.
     "points" takes point-to-point's defaults for `schedule` and edge rejection, "surface"
     point-to-plane's."""
     lm_disc_radius: float = 1.0
