@@ -63,9 +63,10 @@ ASSOCIATIONS = ("tree", "projective")
 #: Default association per variant (`ICPConfig.association` None). Point-to-point and LM pair
 #: by the exact tree: under the field profile (a reconstructed twin, every error source;
 #: `vinetwin campaign --profile field`, Table 1's starts, seed 0) projective association left
-#: them twice as far off in rotation on the sample (0.010-0.012 against 0.0044-0.0062 rad) and
-#: no closer on the hydroshoot and dense vines; point-to-plane and symmetric did as well with it
-#: (docs/results/speed.md, "Projective association in the field").
+#: them twice as far off in rotation on the sample (0.010-0.012 against 0.0044-0.0062 rad; a
+#: second seed alike for point-to-point) and no closer on the hydroshoot and dense vines; at the
+#: cut point the two were within about 0.2 mm either way. Point-to-plane and symmetric did as
+#: well with projection (docs/results/speed.md, "Projective association in the field").
 ASSOCIATION_DEFAULTS = {
     "point_to_point": "tree", "lm": "tree",
     "point_to_plane": "projective", "symmetric": "projective",
