@@ -329,13 +329,13 @@ def _threads() -> int:
 
 def _spacing(points: NDF, voxel: float) -> float:
     """A level's point spacing: its voxel, or for the clouds as given the median distance
-    between neighbouring reference points (0 for fewer than two points)."""
+    between neighbouring reference points; at least 0.1 mm."""
     if voxel > 0 or len(points) < 2:
-        return voxel
+        return max(voxel, 1e-4)
     from scipy.spatial import KDTree
 
     d, _ = KDTree(points).query(points, k=2)
-    return float(np.median(d[:, 1]))
+    return max(float(np.median(d[:, 1])), 1e-4)
 
 
 def _projective_index(
@@ -344,7 +344,7 @@ def _projective_index(
     """A level's `ProjectiveIndex`, its cells the level's point spacing (`_spacing`)."""
     idx = K.ProjectiveIndex(
         points, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
-        max(spacing, 1e-4), cfg.projective_window,
+        spacing, cfg.projective_window,
     )  # fmt: skip
     return idx.arrays
 
@@ -402,6 +402,7 @@ class ICP:
                 self.problem = problem
                 return
         cache: dict[tuple[bool, float], tuple[NNTree, NDF]] = {}
+        spacings: dict[tuple[bool, float], float] = {}
         levels = self.config.levels()
         for i, (voxel, dmax) in enumerate(levels):
             final = i == len(levels) - 1
@@ -436,11 +437,13 @@ class ICP:
                 and dmax <= self.config.projective_reach + 1e-12
             )
             lm_surface = self.config.lm_surface
-            spacing = _spacing(tree.points, voxel) if projective or lm_surface else 0.0
+            if (projective or lm_surface) and key not in spacings:  # once per point set
+                spacings[key] = _spacing(tree.points, voxel)
+            spacing = spacings.get(key, 0.0)
             if projective:
                 assert camera is not None
                 proj = _projective_index(tree.points, camera, spacing, self.config)
-            radius = self.config.lm_disc_radius * max(spacing, 1e-4) if lm_surface else 0.0
+            radius = self.config.lm_disc_radius * spacing if lm_surface else 0.0
             self._levels.append(_Level(voxel, dmax, tree, nrm, use, proj, radius))
 
     def align(self, current: Cloud, T_init: Any = None) -> ICPResult:
