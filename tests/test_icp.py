@@ -144,6 +144,40 @@ def test_tree_gives_the_exact_nearest_within_reach(dmax: float) -> None:
     )
 
 
+def test_memoised_tree_answers_stay_exact() -> None:
+    """Across a sequence of poses (steps from hundredths of a millimetre to a centimetre), the
+    tree's memo answers every point with its exact closest reference point within reach (scipy's
+    k-d tree), and the small steps do skip most searches."""
+    from scipy.spatial import KDTree
+
+    rng = np.random.default_rng(5)
+    ref = rng.uniform(-0.05, 0.05, (4000, 3))
+    ref[:30] = ref[30:60]  # duplicates
+    src = ref[rng.choice(len(ref), 1500)] + rng.normal(0, 0.002, (1500, 3))
+    tree = K.NNTree(ref)
+    exact = KDTree(tree.points)
+    n, dmax = len(src), 0.005
+    memo = K.new_memo(n)
+    q, idx, d2 = np.empty((n, 3)), np.empty(n, np.int64), np.empty(n)
+    T = np.eye(4)
+    skipped = []
+    for step in (0.0, 1e-5, 3e-5, 1e-4, 0.01, 2e-5, 0.0, 3e-4, 1e-5):
+        T = fr.random_pose(rng, step, step / 0.1) @ T
+        where_before = memo[1].copy()
+        K._associate_range(src, T, tree.arrays, dmax, 0, n, q, idx, d2, K.NO_PROJECTIVE, memo)
+        d_ref, _ = exact.query(q, distance_upper_bound=dmax)
+        found = np.isfinite(d_ref)
+        assert np.array_equal(idx >= 0, found)
+        np.testing.assert_allclose(np.sqrt(d2[found]), d_ref[found], atol=1e-12)
+        np.testing.assert_allclose(
+            np.linalg.norm(tree.points[idx[found]] - q[found], axis=1), d_ref[found], atol=1e-12
+        )
+        skipped.append(float(np.mean(np.all(memo[1] == where_before, axis=1) & (memo[0] >= 0))))
+    assert skipped[0] == 0.0  # the first call searches every point
+    assert min(skipped[1], skipped[2], skipped[8]) > 0.5  # hundredths of a mm: most kept
+    assert skipped[4] < 0.2  # a centimetre: searched again
+
+
 @pytest.mark.parametrize("variant", ["point_to_plane", "symmetric", "lm"])
 def test_vine_views_recover_known_transforms(vine_views: VineViews, variant: str) -> None:
     """Warm start (2 cm / 3 deg) on the sample's D405 views, each cloud with its own noise: the
@@ -374,7 +408,7 @@ def test_projective_association_is_the_nearest_within_its_window(window: int) ->
     dmax = 0.005
     n = len(src)
     q, idx, d2 = np.empty((n, 3)), np.empty(n, np.int64), np.empty(n)
-    K._associate_range(src, T, tree.arrays, dmax, 0, n, q, idx, d2, idx_.arrays)
+    K._associate_range(src, T, tree.arrays, dmax, 0, n, q, idx, d2, idx_.arrays, K.NO_MEMO)
 
     def cell(p: np.ndarray) -> np.ndarray:
         u = (cam.fx * p[:, 0] / p[:, 2] + cam.cx) / idx_.scale

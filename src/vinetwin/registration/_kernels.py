@@ -2,7 +2,10 @@
 
 The reference never changes during a servo, so its k-d tree (flat arrays, median splits, leaves
 of 8 points) is built once; a query gives the exact closest reference point within the
-correspondence distance. The reference is also a view from a known camera: `ProjectiveIndex`
+correspondence distance. Within a registration the tree's answers are memoised: a point that
+has moved less since its last search than the margin by which its partner was closest (the
+second closest point's distance less the partner's) keeps its partner without a search, which
+is still the exact answer; late iterations move points by hundredths of a millimetre. The reference is also a view from a known camera: `ProjectiveIndex`
 bins its points by their pixel, and projective association pairs a current point with the
 closest reference point in the cells around its own projection (no tree, O(1) per point). A level runs entirely in compiled code: association, the variant's linear system,
 the 6x6 solve (or the 3x3 SVD of point-to-point) and the convergence test, so a frame costs one
@@ -152,6 +155,54 @@ def _nearest(
     return best, best_d2
 
 
+@nb.njit(cache=True, nogil=True)
+def _nearest2(
+    q: np.ndarray, tree: Any, dmax: float, stack: np.ndarray, bound: np.ndarray
+) -> tuple[int, float, float]:
+    """`_nearest`, and the squared distance of the second closest point within dmax (dmax^2
+    when there is none): every other reference point is at least that far from q."""
+    pts, split_dim, split_val, child, lo, hi = tree
+    best = -1
+    best_d2 = dmax * dmax
+    second_d2 = dmax * dmax
+    top = 0
+    stack[0] = 0
+    bound[0] = 0.0
+    while top >= 0:
+        node = stack[top]
+        if bound[top] > second_d2:
+            top -= 1
+            continue
+        top -= 1
+        d = split_dim[node]
+        if d < 0:
+            for m in range(lo[node], hi[node]):
+                dx = pts[m, 0] - q[0]
+                dy = pts[m, 1] - q[1]
+                dz = pts[m, 2] - q[2]
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 <= best_d2:
+                    if best >= 0:
+                        second_d2 = best_d2
+                    best_d2 = d2
+                    best = m
+                elif d2 < second_d2:
+                    second_d2 = d2
+            continue
+        diff = q[d] - split_val[node]
+        near = child[node] if diff < 0 else child[node] + 1
+        far = child[node] + 1 if diff < 0 else child[node]
+        top += 1
+        stack[top] = far
+        bound[top] = diff * diff
+        top += 1
+        stack[top] = near
+        bound[top] = 0.0
+    if best < 0:
+        return -1, np.inf, second_d2
+    return best, best_d2, second_d2
+
+
 class ProjectiveIndex:
     """The reference points binned by where they project in the reference camera's image, for
     projective association: a current point, placed in the reference camera frame, is projected
@@ -193,6 +244,12 @@ class ProjectiveIndex:
 
 
 #: What the kernels take instead of a `ProjectiveIndex` for tree association.
+def new_memo(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An empty memo of the tree's answers for n points (`_associate_range`)."""
+    return (np.full(n, -1, np.int64), np.zeros((n, 3)), np.zeros(n))
+
+
+NO_MEMO = new_memo(0)
 NO_PROJECTIVE = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
 
 
@@ -273,17 +330,50 @@ def _associate_range(
     idx: np.ndarray,
     d2: np.ndarray,
     proj: Any,
+    memo: Any,
 ) -> None:
     """Points i0..i1: transformed by T, then paired by the tree, or by projection when `proj`
-    is a `ProjectiveIndex`'s arrays (empty params: the tree)."""
+    is a `ProjectiveIndex`'s arrays (empty params: the tree). `memo`, (partner, where, gap)
+    with a row per point (empty: none), keeps the tree's last answer for each point: its
+    partner, where the point was then, and the distance of the second closest reference point
+    then. A point that has moved less since than the margin by which its partner was closest
+    keeps its partner without a search (the same, exact answer: every other reference point
+    is still farther), else it is searched again; late iterations move points by hundredths
+    of a millimetre, so most skip the tree."""
     stack = np.empty(128, np.int64)
     bound = np.empty(128)
     projective = proj[3].shape[0] > 0
+    partner, where, gap = memo
+    memoised = gap.shape[0] > 0
+    pts = tree[0]
     for i in range(i0, i1):
         for a in range(3):
             q[i, a] = T[a, 0] * src[i, 0] + T[a, 1] * src[i, 1] + T[a, 2] * src[i, 2] + T[a, 3]
         if projective:
-            idx[i], d2[i] = _nearest_projective(q[i], tree[0], proj, dmax)
+            idx[i], d2[i] = _nearest_projective(q[i], pts, proj, dmax)
+        elif memoised:
+            c = partner[i]
+            if c >= 0:
+                mx = q[i, 0] - where[i, 0]
+                my = q[i, 1] - where[i, 1]
+                mz = q[i, 2] - where[i, 2]
+                margin = gap[i] - math.sqrt(mx * mx + my * my + mz * mz)
+                dx = pts[c, 0] - q[i, 0]
+                dy = pts[c, 1] - q[i, 1]
+                dz = pts[c, 2] - q[i, 2]
+                dd = dx * dx + dy * dy + dz * dz
+                if margin > 0.0 and dd < margin * margin:  # still the closest
+                    if dd <= dmax * dmax:
+                        idx[i], d2[i] = c, dd
+                    else:
+                        idx[i], d2[i] = -1, np.inf
+                    continue
+            j, dj, second = _nearest2(q[i], tree, dmax, stack, bound)
+            idx[i], d2[i] = j, dj
+            partner[i] = j
+            gap[i] = math.sqrt(second)
+            for a in range(3):
+                where[i, a] = q[i, a]
         else:
             idx[i], d2[i] = _nearest(q[i], tree, dmax, stack, bound)
 
@@ -315,8 +405,11 @@ def associate(
     Split in one chunk per thread above 256 points."""
     n, q, idx, d2, chunks, size = _buffers(src, threads)
     proj = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+    memo = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
     for c in nb.prange(chunks):
-        _associate_range(src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2, proj)
+        _associate_range(
+            src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2, proj, memo
+        )
     return q, idx, d2
 
 
@@ -674,14 +767,16 @@ def register_level(
     threads: int,
     accelerate: bool,
     proj: Any,
-    lm_radius: float = 0.0,
+    lm_radius: float,
+    memo: Any,
 ) -> tuple[np.ndarray, int, int, int, float]:
     """One level of ICP from T0. Returns (T, status, iterations, pairs, rmse of the last
     association). `tree` is `NNTree.arrays`; `nrm` and `use` are in its point order. `proj`:
     a `ProjectiveIndex`'s arrays over the same points for projective association, or
     `NO_PROJECTIVE` for the tree's exact closest points. `lm_radius` > 0: LM minimises the
     distances to the reference surface as discs of this radius about its points (`nrm` then
-    holds their normals), else the distances to the points."""
+    holds their normals), else the distances to the points. `memo`: `new_memo(len(src))`, or the
+    memo a previous level over the same `src` and tree left (its answers stay exact)."""
     pts = tree[0]
     T = T0.copy()
     n, q, idx, d2, chunks, size = _buffers(src, threads)
@@ -700,7 +795,9 @@ def register_level(
     rmse = np.nan
     for it in range(1, max_iter + 1):
         for c in nb.prange(chunks):
-            _associate_range(src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2, proj)
+            _associate_range(
+                src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2, proj, memo
+            )
         for i in range(idx.shape[0]):
             if idx[i] >= 0 and not use[idx[i]]:
                 idx[i] = -1

@@ -464,6 +464,7 @@ class ICP:
         total = 0
         status, pairs = K.ITERATION_LIMIT, 0
         src_cache: dict[float, tuple[NDF, NDF]] = {}
+        memos: dict[tuple[int, float], Any] = {}  # the tree's answers, per (tree, current copy)
         cur_n = current.normals if need_n else None
         for lv in self._levels:
             if lv.voxel not in src_cache:
@@ -475,12 +476,13 @@ class ICP:
                 tol_t = max(tol_t, cfg.coarse_tolerance * lv.dmax)
                 tol_r = max(tol_r, cfg.coarse_tolerance * lv.dmax / 0.1)
             t = lv.tree
+            memo = memos.setdefault((id(t), lv.voxel), K.new_memo(len(src)))
             try:
                 T, status, it, pairs, _ = K.register_level(
                     src, src_n, t.arrays, lv.normals, lv.use, T, lv.dmax, code,
                     cfg.max_iterations, tol_t, tol_r,
                     cfg.min_correspondences, cfg.huber_delta, _threads(), cfg.accelerate,
-                    lv.proj, lv.lm_radius,
+                    lv.proj, lv.lm_radius, memo,
                 )  # fmt: skip
             except np.linalg.LinAlgError as exc:  # a safety net: the kernels test what they solve
                 return ICPResult(T, False, iterations=total, reason=f"numerical failure: {exc}")
@@ -490,7 +492,9 @@ class ICP:
         lv = self._levels[-1]
         cycle_note = ""
         if status == K.ITERATION_LIMIT and cfg.cycle_translation > 0 and cfg.cycle_rotation > 0:
-            cycle_note = self._limit_cycle(src_cache[lv.voxel], lv, T, code)
+            cycle_note = self._limit_cycle(
+                src_cache[lv.voxel], lv, T, code, memos[(id(lv.tree), lv.voxel)]
+            )
             if cycle_note:
                 status = K.CONVERGED
         src = full.points
@@ -565,7 +569,7 @@ class ICP:
         _, cidx, _ = K.associate(src, T, c.arrays, dmax, _threads())
         return _share_hit(cidx[cidx >= 0], len(c.points))
 
-    def _limit_cycle(self, src: tuple[NDF, NDF], lv: Any, T: NDF, code: int) -> str:
+    def _limit_cycle(self, src: tuple[NDF, NDF], lv: Any, T: NDF, code: int, memo: Any) -> str:
         """The final level stopped at its iteration limit: follows it three more iterations.
         If the estimates stay within the cycle tolerances of each other (a cycle between pair
         sets, which the tolerances of a single update never call converged), returns the
@@ -576,7 +580,7 @@ class ICP:
             nxt, _st, _it, _p, _r = K.register_level(
                 src[0], src[1], lv.tree.arrays, lv.normals, lv.use, states[-1], lv.dmax, code,
                 1, 0.0, 0.0, cfg.min_correspondences, cfg.huber_delta, _threads(), False,
-                lv.proj, lv.lm_radius,
+                lv.proj, lv.lm_radius, memo,
             )  # fmt: skip
             states.append(nxt)
         spread_t = spread_r = 0.0
