@@ -132,7 +132,7 @@ def test_tree_gives_the_exact_nearest_within_reach(dmax: float) -> None:
     src = np.vstack([ref[:1000] + rng.normal(0, 0.003, (1000, 3)), rng.uniform(-1, 1, (300, 3))])
     T = fr.random_pose(rng, 0.01, 0.05)
     tree = K.NNTree(ref)
-    q, idx, d2 = K.associate(src, T, tree.arrays, dmax, 2)
+    q, idx, d2 = K.associate(src, T, tree.arrays, dmax, 2, K.NO_MEMO)
     d_ref, _ = KDTree(ref).query(fr.transform_points(T, src), distance_upper_bound=dmax)
     found = np.isfinite(d_ref)
     assert np.array_equal(idx >= 0, found)

@@ -398,14 +398,14 @@ def _buffers(
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def associate(
-    src: np.ndarray, T: np.ndarray, tree: Any, dmax: float, threads: int
+    src: np.ndarray, T: np.ndarray, tree: Any, dmax: float, threads: int, memo: Any
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transforms src by T and finds each point's closest reference point within dmax.
     Returns (transformed points, tree-order reference index or -1, squared distance or inf).
-    Split in one chunk per thread above 256 points."""
+    Split in one chunk per thread above 256 points. `memo`: `NO_MEMO`, or the memo a
+    registration of the same `src` against the same tree left (`_associate_range`)."""
     n, q, idx, d2, chunks, size = _buffers(src, threads)
     proj = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
-    memo = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
     for c in nb.prange(chunks):
         _associate_range(
             src, T, tree, dmax, c * size, min(n, (c + 1) * size), q, idx, d2, proj, memo

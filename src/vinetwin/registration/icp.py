@@ -493,13 +493,17 @@ class ICP:
         cycle_note = ""
         if status == K.ITERATION_LIMIT and cfg.cycle_translation > 0 and cfg.cycle_rotation > 0:
             cycle_note = self._limit_cycle(
-                src_cache[lv.voxel], lv, T, code, memos[(id(lv.tree), lv.voxel)]
+                src_cache[lv.voxel], lv, T, code, memos.get((id(lv.tree), lv.voxel), K.NO_MEMO)
             )
             if cycle_note:
                 status = K.CONVERGED
         src = full.points
         t = lv.tree
-        q, idx, d2 = K.associate(src, T, t.arrays, lv.dmax, _threads())
+        # the final level's memo serves when its copy is the whole cloud (nothing cropped, the
+        # clouds as given): its last search was one small update ago, so few points search again
+        same = current is full and lv.voxel <= 0 and lv.proj is K.NO_PROJECTIVE
+        memo = memos.get((id(t), lv.voxel), K.NO_MEMO) if same else K.NO_MEMO
+        q, idx, d2 = K.associate(src, T, t.arrays, lv.dmax, _threads(), memo)
         ok = idx >= 0
         n_ok = int(ok.sum())
         result = ICPResult(
@@ -566,7 +570,7 @@ class ICP:
         if self._coverage_tree is None:
             return _share_hit(idx, n_ref)
         c = self._coverage_tree
-        _, cidx, _ = K.associate(src, T, c.arrays, dmax, _threads())
+        _, cidx, _ = K.associate(src, T, c.arrays, dmax, _threads(), K.NO_MEMO)
         return _share_hit(cidx[cidx >= 0], len(c.points))
 
     def _limit_cycle(self, src: tuple[NDF, NDF], lv: Any, T: NDF, code: int, memo: Any) -> str:
