@@ -483,10 +483,15 @@ def _normal_eq(
     sel: np.ndarray,
     symmetric: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """J^T J and J^T r of the point-to-plane (or symmetric) residuals over the pairs `sel`."""
-    A = np.zeros((6, 6))
-    b = np.zeros(6)
-    J = np.empty(6)
+    """J^T J and J^T r of the point-to-plane (or symmetric) residuals over the pairs `sel`
+    (the 21 entries of J^T J's upper triangle and J^T r kept in scalars: in registers)."""
+    a00 = a01 = a02 = a03 = a04 = a05 = 0.0
+    a11 = a12 = a13 = a14 = a15 = 0.0
+    a22 = a23 = a24 = a25 = 0.0
+    a33 = a34 = a35 = 0.0
+    a44 = a45 = 0.0
+    a55 = 0.0
+    b0 = b1 = b2 = b3 = b4 = b5 = 0.0
     for s in range(sel.shape[0]):
         i = sel[s]
         j = idx[i]
@@ -505,19 +510,47 @@ def _normal_eq(
             p1 = q[i, 1]
             p2 = q[i, 2]
         r = (q[i, 0] - y[j, 0]) * n0 + (q[i, 1] - y[j, 1]) * n1 + (q[i, 2] - y[j, 2]) * n2
-        J[0] = n0
-        J[1] = n1
-        J[2] = n2
-        J[3] = p1 * n2 - p2 * n1
-        J[4] = p2 * n0 - p0 * n2
-        J[5] = p0 * n1 - p1 * n0
-        for a in range(6):
-            b[a] += J[a] * r
-            for c in range(a, 6):
-                A[a, c] += J[a] * J[c]
+        j3 = p1 * n2 - p2 * n1
+        j4 = p2 * n0 - p0 * n2
+        j5 = p0 * n1 - p1 * n0
+        b0 += n0 * r
+        b1 += n1 * r
+        b2 += n2 * r
+        b3 += j3 * r
+        b4 += j4 * r
+        b5 += j5 * r
+        a00 += n0 * n0
+        a01 += n0 * n1
+        a02 += n0 * n2
+        a03 += n0 * j3
+        a04 += n0 * j4
+        a05 += n0 * j5
+        a11 += n1 * n1
+        a12 += n1 * n2
+        a13 += n1 * j3
+        a14 += n1 * j4
+        a15 += n1 * j5
+        a22 += n2 * n2
+        a23 += n2 * j3
+        a24 += n2 * j4
+        a25 += n2 * j5
+        a33 += j3 * j3
+        a34 += j3 * j4
+        a35 += j3 * j5
+        a44 += j4 * j4
+        a45 += j4 * j5
+        a55 += j5 * j5
+    A = np.empty((6, 6))
+    A[0, 0], A[0, 1], A[0, 2], A[0, 3], A[0, 4], A[0, 5] = a00, a01, a02, a03, a04, a05
+    A[1, 1], A[1, 2], A[1, 3], A[1, 4], A[1, 5] = a11, a12, a13, a14, a15
+    A[2, 2], A[2, 3], A[2, 4], A[2, 5] = a22, a23, a24, a25
+    A[3, 3], A[3, 4], A[3, 5] = a33, a34, a35
+    A[4, 4], A[4, 5] = a44, a45
+    A[5, 5] = a55
     for a in range(6):
         for c in range(a):
             A[a, c] = A[c, a]
+    b = np.array([b0, b1, b2, b3, b4, b5])
     return A, b
 
 
