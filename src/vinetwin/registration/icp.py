@@ -11,8 +11,9 @@
   (Rusinkiewicz 2019).
 
 The reference never changes during a servo: `ICP(reference_cloud, config)` builds its
-k-d trees (one per voxel size of its levels) and, for projective association, the reference
-points binned by their pixel in the reference camera's image, once; `align(current_cloud,
+k-d trees (one per voxel size of its levels; their searches memoised within a registration,
+the same exact answers) and, for projective association, the reference points binned by their
+pixel in the reference camera's image, once; `align(current_cloud,
 T_init)` runs per frame, each level in one compiled call (`vinetwin.registration._kernels`). A
 registration runs through levels, coarse to fine: each level is (voxel size, maximum
 correspondence distance). The default (`SCHEDULES`) shrinks the distance: 3 cm (on 4 mm copies
@@ -169,9 +170,11 @@ class ICPConfig:
     association needs the reference's camera given to ICP (without it: the tree) and applies to
     the levels whose reach is at most `projective_reach`; wider levels use the tree (their
     partners lie far sideways: projective association there lost 1-3 of 8-10 warm starts that
-    the tree brought in, on three vines). Measured against the tree on 2 mm clouds of the
-    dense and a hydroshoot vine: 0.8-1.0x the time at equal or smaller median error; the
-    fitness, overlap and coverage of a result are always counted with the tree (exact)."""
+    the tree brought in, on three vines). Against the tree, whose searches are memoised
+    within a registration (`_kernels`), point-to-plane and symmetric took 0.66-1.64x its time
+    on three vines' 2 and 4 mm views, at an equal or smaller median error at 2 mm (dense vine,
+    point-to-plane from 2 cm: 0.10 against 0.15 mm); the fitness, overlap and coverage of a
+    result are always counted with the tree (exact)."""
     projective_reach: float = 0.01
     """The widest level (correspondence distance, m) that projective association serves."""
     projective_window: int = 1
