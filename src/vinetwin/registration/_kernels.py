@@ -5,11 +5,12 @@ of 8 points) is built once; a query gives the exact closest reference point with
 correspondence distance. Within a registration the tree's answers are memoised: a point that
 has moved less since its last search than the margin by which its partner was closest (the
 second closest point's distance less the partner's) keeps its partner without a search, which
-is still the exact answer; late iterations move points by hundredths of a millimetre. The reference is also a view from a known camera: `ProjectiveIndex`
-bins its points by their pixel, and projective association pairs a current point with the
-closest reference point in the cells around its own projection (no tree, O(1) per point). A level runs entirely in compiled code: association, the variant's linear system,
-the 6x6 solve (or the 3x3 SVD of point-to-point) and the convergence test, so a frame costs one
-Python call per level.
+is still the exact answer; late iterations move points by hundredths of a millimetre. The
+reference is also a view from a known camera: `ProjectiveIndex` bins its points by their pixel,
+and projective association pairs a current point with the closest reference point in the cells
+around its own projection (no tree, O(1) per point). A level runs entirely in compiled code:
+association, the variant's linear system, the 6x6 solve (or the 3x3 SVD of point-to-point) and
+the convergence test, so a frame costs one Python call per level.
 
 Variant codes: 0 point-to-point, 1 Levenberg-Marquardt, 2 point-to-plane, 3 symmetric.
 Status codes: 0 converged, 1 iteration limit, 2 too few correspondences, 3 singular system.

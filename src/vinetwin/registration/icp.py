@@ -479,7 +479,10 @@ class ICP:
                 tol_t = max(tol_t, cfg.coarse_tolerance * lv.dmax)
                 tol_r = max(tol_r, cfg.coarse_tolerance * lv.dmax / 0.1)
             t = lv.tree
-            memo = memos.setdefault((id(t), lv.voxel), K.new_memo(len(src)))
+            key = (id(t), lv.voxel)
+            if key not in memos:
+                memos[key] = K.new_memo(len(src))
+            memo = memos[key]
             try:
                 T, status, it, pairs, _ = K.register_level(
                     src, src_n, t.arrays, lv.normals, lv.use, T, lv.dmax, code,
