@@ -112,21 +112,25 @@ def _build_tree(
     )
 
 
-@nb.njit(cache=True, nogil=True)
-def _nearest(
-    q: np.ndarray, tree: Any, dmax: float, stack: np.ndarray, bound: np.ndarray
-) -> tuple[int, float]:
-    """Index (into the tree's points) and squared distance of the closest point within dmax;
-    (-1, inf) when none. `tree` is `NNTree.arrays`."""
+@nb.njit(cache=True, nogil=True, inline="always")
+def _search(
+    q: np.ndarray, tree: Any, dmax: float, stack: np.ndarray, bound: np.ndarray, two: bool
+) -> tuple[int, float, float]:
+    """Index (into the tree's points) and squared distance of the closest point within dmax,
+    (-1, inf) when none; with `two`, also the squared distance of the second closest within
+    dmax (dmax^2 when there is none: every other reference point is at least that far from
+    q), else dmax^2. `tree` is `NNTree.arrays`."""
     pts, split_dim, split_val, child, lo, hi = tree
     best = -1
     best_d2 = dmax * dmax
+    second_d2 = dmax * dmax
+    limit = best_d2  # what a branch must beat: the closest so far, or with `two` the second
     top = 0
     stack[0] = 0
     bound[0] = 0.0
     while top >= 0:
         node = stack[top]
-        if bound[top] > best_d2:
+        if bound[top] > limit:
             top -= 1
             continue
         top -= 1
@@ -138,8 +142,13 @@ def _nearest(
                 dz = pts[m, 2] - q[2]
                 d2 = dx * dx + dy * dy + dz * dz
                 if d2 <= best_d2:
+                    if two and best >= 0:
+                        second_d2 = best_d2
                     best_d2 = d2
                     best = m
+                elif two and d2 < second_d2:
+                    second_d2 = d2
+            limit = second_d2 if two else best_d2
             continue
         diff = q[d] - split_val[node]
         near = child[node] if diff < 0 else child[node] + 1
@@ -152,56 +161,18 @@ def _nearest(
         stack[top] = near
         bound[top] = 0.0
     if best < 0:
-        return -1, np.inf
-    return best, best_d2
+        return -1, np.inf, second_d2
+    return best, best_d2, second_d2
 
 
 @nb.njit(cache=True, nogil=True)
-def _nearest2(
+def _nearest(
     q: np.ndarray, tree: Any, dmax: float, stack: np.ndarray, bound: np.ndarray
-) -> tuple[int, float, float]:
-    """`_nearest`, and the squared distance of the second closest point within dmax (dmax^2
-    when there is none): every other reference point is at least that far from q."""
-    pts, split_dim, split_val, child, lo, hi = tree
-    best = -1
-    best_d2 = dmax * dmax
-    second_d2 = dmax * dmax
-    top = 0
-    stack[0] = 0
-    bound[0] = 0.0
-    while top >= 0:
-        node = stack[top]
-        if bound[top] > second_d2:
-            top -= 1
-            continue
-        top -= 1
-        d = split_dim[node]
-        if d < 0:
-            for m in range(lo[node], hi[node]):
-                dx = pts[m, 0] - q[0]
-                dy = pts[m, 1] - q[1]
-                dz = pts[m, 2] - q[2]
-                d2 = dx * dx + dy * dy + dz * dz
-                if d2 <= best_d2:
-                    if best >= 0:
-                        second_d2 = best_d2
-                    best_d2 = d2
-                    best = m
-                elif d2 < second_d2:
-                    second_d2 = d2
-            continue
-        diff = q[d] - split_val[node]
-        near = child[node] if diff < 0 else child[node] + 1
-        far = child[node] + 1 if diff < 0 else child[node]
-        top += 1
-        stack[top] = far
-        bound[top] = diff * diff
-        top += 1
-        stack[top] = near
-        bound[top] = 0.0
-    if best < 0:
-        return -1, np.inf, second_d2
-    return best, best_d2, second_d2
+) -> tuple[int, float]:
+    """Index (into the tree's points) and squared distance of the closest point within dmax;
+    (-1, inf) when none. `tree` is `NNTree.arrays`."""
+    j, d2, _ = _search(q, tree, dmax, stack, bound, False)
+    return j, d2
 
 
 class ProjectiveIndex:
@@ -369,7 +340,7 @@ def _associate_range(
                     else:
                         idx[i], d2[i] = -1, np.inf
                     continue
-            j, dj, second = _nearest2(q[i], tree, dmax, stack, bound)
+            j, dj, second = _search(q[i], tree, dmax, stack, bound, True)
             idx[i], d2[i] = j, dj
             partner[i] = j
             gap[i] = math.sqrt(second)
