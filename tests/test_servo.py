@@ -166,6 +166,23 @@ def test_steady_tracking_runs_the_final_level_alone_and_falls_back_when_it_moved
     assert r2.T_ref_cur is not None and fr.pose_error(r2.T_ref_cur, D1)[0] < 1e-3
 
 
+def test_tracking_pass_stops_at_the_safety_tolerance(ref: Cloud, vine_views: VineViews) -> None:
+    """The final-level pass from the prediction stops at `SafetyConfig.track_tolerance` when
+    that is looser than the ICP's own tolerances (0: the ICP's), and a tolerance that NaN or a
+    negative number would switch off is refused by name."""
+    from vinetwin.errors import InputError
+
+    own = ICPConfig(variant="point_to_plane")
+    assert servo(ref, vine_views)._tight_icp().config.tolerance_translation == 1e-4
+    assert servo(ref, vine_views)._tight_icp().config.tolerance_rotation == 1e-4
+    exact = servo(ref, vine_views, track_tolerance=0.0)._tight_icp().config
+    assert exact.tolerance_translation == own.tolerance_translation
+    assert exact.tolerance_rotation == own.tolerance_rotation
+    for bad in (float("nan"), -1e-4):
+        with pytest.raises(InputError, match="track_tolerance"):
+            SafetyConfig(track_tolerance=bad)
+
+
 def test_single_straight_cane_never_moves_the_arm() -> None:
     s, a = np.meshgrid(np.linspace(-0.1, 0.1, 200), np.linspace(0, 2 * np.pi, 24, endpoint=False))
     n = np.column_stack([np.zeros(s.size), np.cos(a.ravel()), np.sin(a.ravel())])

@@ -414,9 +414,14 @@ class Servo:
     def _tight_icp(self) -> ICP:
         """Tracking ICP without the wide levels: the final level only, from the prediction."""
         if self._tight is None:
+            cfg, tol = self.icp_config, self.safety.track_tolerance
+            tight = replace(
+                cfg, schedule=(), tolerance_translation=max(cfg.tolerance_translation, tol),
+                tolerance_rotation=max(cfg.tolerance_rotation, tol),
+            )  # fmt: skip
             self._tight = ICP(
-                self.reference, replace(self.icp_config, schedule=()), camera=self.camera,
-                max_depth=self._max_depth, final_reference=self._dense,
+                self.reference, tight, camera=self.camera, max_depth=self._max_depth,
+                final_reference=self._dense,
             )  # fmt: skip
         return self._tight
 
