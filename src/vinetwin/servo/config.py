@@ -150,8 +150,9 @@ class SafetyConfig(JsonFields):
     a refusal) stops when an update moves less than this (m) and turns less than this (rad),
     if that is looser than the ICP's own tolerances: from a prediction a few millimetres off
     its last iterations move the estimate by hundredths of a millimetre, below the D405's noise
-    (2 mm views of three vines, 2 mm / 0.5 deg predictions: 4-9 iterations instead of 6-15, the
-    same median and p90 errors within 0.005 mm; docs/results/speed.md). 0: the ICP's own."""
+    (2 mm views of three vines, 2 mm / 0.5 deg predictions: 4-9 iterations instead of 6-15;
+    median and p90 errors within 0.005 mm of the exact tolerance's for point-to-plane,
+    symmetric and LM, 0.015 and 0.04 mm for point-to-point; docs/servo.md). 0: the ICP's own."""
 
     def __post_init__(self) -> None:
         check_finite(self, ("track_tolerance",))
