@@ -216,13 +216,16 @@ class ProjectiveIndex:
 
 
 #: What the kernels take instead of a `ProjectiveIndex` for tree association.
+NO_PROJECTIVE = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+
+
 def new_memo(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An empty memo of the tree's answers for n points (`_associate_range`)."""
     return (np.full(n, -1, np.int64), np.zeros((n, 3)), np.zeros(n))
 
 
+#: No memo: every point searched (`_associate_range`).
 NO_MEMO = new_memo(0)
-NO_PROJECTIVE = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

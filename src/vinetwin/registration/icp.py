@@ -303,6 +303,11 @@ class _Level:
     lm_radius: float = 0.0
     """LM "surface": the reference points' disc radius at this level (m); 0: LM on points."""
 
+    @property
+    def memo_key(self) -> tuple[int, float]:
+        """Levels over the same tree and the same current copy share the tree's memo."""
+        return (id(self.tree), self.voxel)
+
 
 def view_edge_mask(
     points: NDF, camera: CameraModel, reach: float, max_depth: float = np.inf
@@ -467,7 +472,7 @@ class ICP:
         total = 0
         status, pairs = K.ITERATION_LIMIT, 0
         src_cache: dict[float, tuple[NDF, NDF]] = {}
-        memos: dict[tuple[int, float], Any] = {}  # the tree's answers, per (tree, current copy)
+        memos: dict[tuple[int, float], Any] = {}  # the tree's answers, by `_Level.memo_key`
         cur_n = current.normals if need_n else None
         for lv in self._levels:
             if lv.voxel not in src_cache:
@@ -479,10 +484,9 @@ class ICP:
                 tol_t = max(tol_t, cfg.coarse_tolerance * lv.dmax)
                 tol_r = max(tol_r, cfg.coarse_tolerance * lv.dmax / 0.1)
             t = lv.tree
-            key = (id(t), lv.voxel)
-            if key not in memos:
-                memos[key] = K.new_memo(len(src))
-            memo = memos[key]
+            if lv.memo_key not in memos:
+                memos[lv.memo_key] = K.new_memo(len(src))
+            memo = memos[lv.memo_key]
             try:
                 T, status, it, pairs, _ = K.register_level(
                     src, src_n, t.arrays, lv.normals, lv.use, T, lv.dmax, code,
@@ -499,7 +503,7 @@ class ICP:
         cycle_note = ""
         if status == K.ITERATION_LIMIT and cfg.cycle_translation > 0 and cfg.cycle_rotation > 0:
             cycle_note = self._limit_cycle(
-                src_cache[lv.voxel], lv, T, code, memos.get((id(lv.tree), lv.voxel), K.NO_MEMO)
+                src_cache[lv.voxel], lv, T, code, memos.get(lv.memo_key, K.NO_MEMO)
             )
             if cycle_note:
                 status = K.CONVERGED
@@ -508,7 +512,7 @@ class ICP:
         # the final level's memo serves when its copy is the whole cloud (nothing cropped, the
         # clouds as given): its last search was one small update ago, so few points search again
         same = current is full and lv.voxel <= 0 and lv.proj is K.NO_PROJECTIVE
-        memo = memos.get((id(t), lv.voxel), K.NO_MEMO) if same else K.NO_MEMO
+        memo = memos.get(lv.memo_key, K.NO_MEMO) if same else K.NO_MEMO
         q, idx, d2 = K.associate(src, T, t.arrays, lv.dmax, _threads(), memo)
         ok = idx >= 0
         n_ok = int(ok.sum())
