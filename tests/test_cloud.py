@@ -3,6 +3,9 @@ whose answer is known."""
 
 from __future__ import annotations
 
+import itertools
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -125,11 +128,14 @@ def test_statistical_outliers_grid_search_equals_the_tree(
 
 
 @pytest.mark.parametrize("voxel", [0.002, 0.004])
-def test_fused_perception_pass_equals_the_two_steps(voxel: float) -> None:
-    """`depth_voxels` (one pass, in two bands of rows merged in order) gives the voxels of
-    `organised_points` followed by `voxel_grid`, in the same order, with the same points and
-    normal sums to rounding, on a noisy scene with canes, a slanted leaf and flying pixels."""
-    from vinetwin import _kernels
+def test_fused_perception_pass_equals_the_two_steps(
+    voxel: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`depth_voxels` (one pass) gives the voxels of `organised_points` followed by
+    `voxel_grid`, in the same order, with the same points and normal sums to rounding, on a
+    noisy scene with canes, a slanted leaf and flying pixels; and so does the chain's pass in
+    2 and 3 bands of rows run in threads and merged in order (`cloud._depth_voxels`)."""
+    from vinetwin import _kernels, cloud
 
     cam = d405("848x480")
     rng = np.random.default_rng(5)
@@ -143,10 +149,28 @@ def test_fused_perception_pass_equals_the_two_steps(voxel: float) -> None:
     o = (0.0005, -0.0003, 0.0001)
     pts, nrm = _kernels.organised_points(*args, True)
     a, an = _kernels.voxel_grid(pts, nrm, voxel, *o, True)
-    b, bn = _kernels.depth_voxels(*args, voxel, *o, 2)
+    b, bn = _kernels.depth_voxels(*args, voxel, *o)
     assert len(a) > 1000
     np.testing.assert_allclose(b, a, rtol=0, atol=1e-15)
     np.testing.assert_allclose(bn, an, rtol=1e-12, atol=1e-18)
+    calls: list[tuple[int, int]] = []
+    band = _kernels.depth_voxel_band
+
+    def counted(*a: Any) -> Any:
+        calls.append((a[-2], a[-1]))
+        return band(*a)
+
+    monkeypatch.setattr(_kernels, "depth_voxel_band", counted)
+    monkeypatch.setattr(cloud, "_MIN_BAND_PIXELS", 1000)
+    cfg = PerceptionConfig(min_depth=0.0, max_depth=0.4, edge_threshold=0.03, voxel_size=voxel)
+    for threads in (2, 3):
+        calls.clear()
+        c, cn = cloud._depth_voxels(depth, cam, cfg, 2, o, threads)
+        calls.sort()
+        assert len(calls) == threads and calls[0][0] == 0 and calls[-1][1] == cam.height
+        assert all(calls[i][1] == calls[i + 1][0] for i in range(threads - 1))
+        np.testing.assert_allclose(c, a, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(cn, an, rtol=1e-12, atol=1e-18)
 
 
 @pytest.mark.parametrize("tilt_deg", [0, 30, 55])
@@ -206,7 +230,11 @@ def test_flying_pixel_mask_follows_its_rule_at_every_pixel(rng: np.random.Genera
         with np.errstate(invalid="ignore"):
             far |= (zn > dmin) & (zn <= dmax) & (z > zn) & (z - zn > t * zn)
     expected = ok & ~far
-    np.testing.assert_array_equal(_kernels._keep_mask(depth, dmin, dmax, t, 1), expected)
+    for cuts in ((0, 270), (0, 101, 270)):  # one band of rows, and two
+        keep = np.zeros(depth.shape, bool)
+        for v0, v1 in itertools.pairwise(cuts):
+            _kernels._keep_rows(depth, dmin, dmax, t, keep, v0, v1)
+        np.testing.assert_array_equal(keep, expected)
     assert 0.2 < expected.mean() < 0.6
 
 
