@@ -253,6 +253,23 @@ def d405_edges(
 
 
 @nb.njit(cache=True, nogil=True)
+def d405_edges_rows(
+    depth: np.ndarray, w: int, jump: np.float32, v0: int, v1: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`d405_edges` for rows v0..v1 only: run on those rows and w more on each side (every
+    window of the band's rows, clipped at the image's border as in the whole image)."""
+    H = depth.shape[0]
+    a0, a1 = max(0, v0 - w), min(H, v1 + w)
+    ev, eu, nv, fv = d405_edges(depth[a0:a1], w, jump)
+    n = 0
+    for k in range(ev.shape[0]):
+        if v0 <= ev[k] + a0 < v1:
+            ev[n], eu[n], nv[n], fv[n] = ev[k] + a0, eu[k], nv[k], fv[k]
+            n += 1
+    return ev[:n], eu[:n], nv[:n], fv[:n]
+
+
+@nb.njit(cache=True, nogil=True)
 def d405_silhouettes(
     depth: np.ndarray,
     ev: np.ndarray,
@@ -296,15 +313,19 @@ def d405_axial(
     zmin: float,
     zmax: float,
     unit: float,
+    before: np.ndarray,
+    v0: int,
+    v1: int,
 ) -> None:
-    """Steps 2-5 of the D405 model on the valid pixels in row-major order, in place: depth
-    times `scale`; plus normal[i] * z^2 * sub / fxb (when `normal` is not empty); invalid when
-    drop[i] < p_drop (when `drop` is not empty); invalid outside [zmin, zmax]; rounded to
-    `unit` (when unit > 0). Computed in float64 and stored in the image's float32."""
-    i = 0
+    """Steps 2-5 of the D405 model on the valid pixels of rows v0..v1 in row-major order, in
+    place: depth times `scale`; plus normal[i] * z^2 * sub / fxb (when `normal` is not empty);
+    invalid when drop[i] < p_drop (when `drop` is not empty); invalid outside [zmin, zmax];
+    rounded to `unit` (when unit > 0). Computed in float64 and stored in the image's float32.
+    `before[v]`: the valid pixels before row v (the draws are indexed over the whole image)."""
+    i = before[v0]
     noise = normal.shape[0] > 0
     dropping = drop.shape[0] > 0
-    for v in range(depth.shape[0]):
+    for v in range(v0, v1):
         for u in range(depth.shape[1]):
             if not depth[v, u] > 0:
                 continue
@@ -321,6 +342,40 @@ def d405_axial(
                 z = np.rint(z / unit) * unit
             depth[v, u] = z
             i += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def clean_depth(src: np.ndarray, out: np.ndarray) -> tuple[int, int, int, int]:
+    """`src` (any float type) into float32 `out`, 0 where it is not finite or negative; returns
+    the bounding box of the valid (positive) pixels as rows r0..r1 and columns c0..c1
+    (inclusive; r1 = -1 when there is none). Branch-free copy, then per row a test for any
+    valid pixel and a search from each end only up to the box so far (numpy's copy, mask and
+    box took 0.4-0.5 ms of an 848x480 image)."""
+    H, W = src.shape
+    r0, r1, c0, c1 = H, -1, W, -1
+    for v in range(H):
+        row = out[v]
+        srow = src[v]
+        for u in range(W):
+            x = np.float32(srow[u])
+            row[u] = x if (x >= 0 and x < np.inf) else np.float32(0.0)  # NaN, inf, negative
+        hit = False
+        for u in range(W):
+            hit |= row[u] > 0
+        if not hit:
+            continue
+        if r0 == H:
+            r0 = v
+        r1 = v
+        for u in range(min(c0, W)):
+            if row[u] > 0:
+                c0 = u
+                break
+        for u in range(W - 1, c1, -1):
+            if row[u] > 0:
+                c1 = u
+                break
+    return r0, r1, c0, c1
 
 
 # ----------------------------------------------------------------------------- fused perception

@@ -33,9 +33,6 @@ may lie farther is searched alone in growing rings). The steps match Open3D's
 from __future__ import annotations
 
 import math
-import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -124,29 +121,15 @@ class Cloud:
 
 
 def _threads() -> int:
-    """Threads of the perception pass: numba's thread count (`NUMBA_NUM_THREADS`; the
-    executor's workers get one). Its kernels are compiled serial and release the GIL; bands of
-    image rows run in Python threads (`_depth_voxels`). With numba's parallel regions in
-    perception instead, the web app's click handler (a thread) spun for good in the test suite."""
-    import numba
+    """Threads of the perception pass (`vinetwin._bands`: numba's thread count)."""
+    from vinetwin import _bands
 
-    return int(numba.get_num_threads())
+    return _bands.threads()
 
 
 #: In-range pixels below which an image is one band (a band's hand-off to a thread costs tens
 #: of microseconds; half of 20k pixels takes about 0.4 ms).
 _MIN_BAND_PIXELS = 20_000
-_POOL: tuple[int, ThreadPoolExecutor] | None = None
-_POOL_LOCK = threading.Lock()
-
-
-def _pool(workers: int) -> ThreadPoolExecutor:
-    """The process's perception threads (made again in a forked child: threads do not fork)."""
-    global _POOL
-    with _POOL_LOCK:
-        if _POOL is None or _POOL[0] != os.getpid() or _POOL[1]._max_workers < workers:
-            _POOL = (os.getpid(), ThreadPoolExecutor(workers, "vinetwin-perception"))
-        return _POOL[1]
 
 
 def _depth_voxels(
@@ -158,10 +141,10 @@ def _depth_voxels(
     threads: int | None = None,
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     """Steps 1-4 and the per-pixel normals (`_kernels.depth_voxels`), the image cut into
-    `threads` (default `_threads()`) bands of rows with equal numbers of in-range pixels, one
-    per thread; the caller's thread takes the first. The same voxels in the same order as one
-    band, their sums equal to rounding."""
-    from vinetwin import _kernels
+    `threads` (default `_threads()`) bands of rows with equal numbers of in-range pixels
+    (`vinetwin._bands`). The same voxels in the same order as one band, their sums equal to
+    rounding."""
+    from vinetwin import _bands, _kernels
 
     dmin = max(cfg.min_depth, 1e-6)
     args = (
@@ -169,19 +152,13 @@ def _depth_voxels(
         step, float(cfg.voxel_size), float(o[0]), float(o[1]), float(o[2]),
     )  # fmt: skip
     threads = _threads() if threads is None else threads
-    H = d.shape[0]
-    if threads <= 1 or H < 32:
+    if threads <= 1 or d.shape[0] < 32:
         return _kernels.depth_voxels(*args)
-    rows = _kernels.valid_rows(d, dmin, cfg.max_depth)  # in-range pixels before each row
-    total = int(rows[-1])
-    bands = max(1, min(threads, total // _MIN_BAND_PIXELS))
+    work = _kernels.valid_rows(d, dmin, cfg.max_depth)  # in-range pixels before each row
+    bands = max(1, min(threads, int(work[-1]) // _MIN_BAND_PIXELS))
     if bands == 1:
         return _kernels.depth_voxels(*args)
-    cuts = [0, *(int(np.searchsorted(rows, total * b // bands)) for b in range(1, bands)), H]
-    band = _kernels.depth_voxel_band
-    pool = _pool(bands - 1)
-    futures = [pool.submit(band, *args, cuts[b], cuts[b + 1]) for b in range(1, bands)]
-    parts = [band(*args, cuts[0], cuts[1]), *(f.result() for f in futures)]
+    parts = _bands.run(_kernels.depth_voxel_band, args, _bands.cuts(work, bands))
     found = np.array([len(p[3]) for p in parts], np.int64)
     joined = [np.concatenate([p[k] for p in parts]) for k in range(4)]
     return _kernels.merge_voxel_bands(joined[0], joined[1], joined[2], joined[3], found)

@@ -28,6 +28,10 @@ from vinetwin._config import JsonFields
 from vinetwin.camera import CameraModel
 from vinetwin.errors import InputError
 
+#: Pixels of the valid pixels' box below which the model runs as one band of rows (a band's
+#: hand-off to a thread costs tens of microseconds).
+_MIN_BAND_PIXELS = 40_000
+
 
 @dataclass(frozen=True, kw_only=True)
 class SensorConfig(JsonFields):
@@ -72,33 +76,38 @@ def apply_d405_model(
         rng: the random generator (seed it for reproducible references).
         config: the sensor settings; default SensorConfig().
     """
+    from vinetwin import _bands, _kernels
+
     cfg = config or SensorConfig()
-    d = np.array(camera.check_depth(depth), dtype=np.float32, copy=True)
-    d[~np.isfinite(d) | (d < 0)] = 0.0
+    src = camera.check_depth(depth)
+    d = np.empty(src.shape, np.float32)
+    r0, r1, c0, c1 = _kernels.clean_depth(src, d)  # 0 where not finite or negative
     if not cfg.enabled:
         return d
     if not (0 <= cfg.edge_invalid <= 1 and 0 <= cfg.edge_smear <= 1 and 0 <= cfg.dropout <= 1):
         raise InputError("sensor probabilities must lie in [0, 1]")
-    valid = d > 0
-    if not valid.any():
+    if r1 < 0:  # nothing valid
         return d
     # work inside the bounding box of the valid pixels (plus a margin): a vine fills little of it
-    rows, cols = np.nonzero(valid.any(1))[0], np.nonzero(valid.any(0))[0]
     m = cfg.edge_width + 1
-    box = (
-        slice(max(rows[0] - m, 0), rows[-1] + m + 1),
-        slice(max(cols[0] - m, 0), cols[-1] + m + 1),
-    )
+    box = (slice(max(r0 - m, 0), r1 + m + 1), slice(max(c0 - m, 0), c1 + m + 1))
     full = d
     d = np.ascontiguousarray(d[box])  # a copy
+    # bands of rows on threads (`vinetwin._bands`) when the box is large enough
+    rows = d.shape[0]
+    bands = max(1, min(_bands.threads(), d.size // _MIN_BAND_PIXELS, rows // 16))
 
     # compiled (vinetwin._kernels); the same numbers as the numpy formulation of each step
     # (tests/test_render.py keeps it as the reference)
-    from vinetwin import _kernels
-
     if cfg.edge_width > 0 and (cfg.edge_invalid > 0 or cfg.edge_smear > 0 or cfg.edge_fatten > 0):
         # silhouette pixels, then random numbers drawn for them only (a small part of the image)
-        ev, eu, nv, fv = _kernels.d405_edges(d, int(cfg.edge_width), np.float32(cfg.edge_jump))
+        w, jump = int(cfg.edge_width), np.float32(cfg.edge_jump)
+        if bands == 1:
+            ev, eu, nv, fv = _kernels.d405_edges(d, w, jump)
+        else:
+            cut = [rows * b // bands for b in range(bands + 1)]
+            parts = _bands.run(_kernels.d405_edges_rows, (d, w, jump), cut)
+            ev, eu, nv, fv = (np.concatenate([p[k] for p in parts]) for k in range(4))
         u1 = rng.random(len(ev), dtype=np.float32)
         u2 = rng.random(len(ev), dtype=np.float32)
         u3 = rng.random(len(ev), dtype=np.float32)
@@ -109,14 +118,16 @@ def apply_d405_model(
         )  # fmt: skip
 
     # the rest touches valid pixels only, in row-major order
-    n = int(np.count_nonzero(d > 0))
+    before = _kernels.valid_rows(d, 0.0, np.inf)  # valid pixels before each row
+    n = int(before[-1])
     sub = camera.subpixel if cfg.subpixel is None else cfg.subpixel
     normal = rng.standard_normal(n) if cfg.noise else np.zeros(0)
     drop = rng.random(n) if cfg.dropout > 0 else np.zeros(0)
-    _kernels.d405_axial(
+    args = (
         d, normal, drop, 1.0 + cfg.bias if cfg.bias else 1.0, float(sub),
         camera.fx * camera.baseline, float(cfg.dropout), camera.min_depth, camera.max_depth,
-        camera.depth_unit if cfg.quantize else 0.0,
+        camera.depth_unit if cfg.quantize else 0.0, before,
     )  # fmt: skip
+    _bands.run(_kernels.d405_axial, args, _bands.cuts(before, bands))
     full[box] = d
     return full
