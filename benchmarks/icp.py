@@ -49,6 +49,7 @@ import numba
 import numpy as np
 from results_file import write_json
 
+import vinetwin
 from vinetwin import _lazy
 from vinetwin import frames as fr
 from vinetwin.cloud import Cloud, perceive, voxel_downsample
@@ -186,6 +187,21 @@ def open3d_method(kind: str, start: str) -> Callable[[Case], Callable[[], tuple[
         return run
 
     return prepare
+
+
+def import_small_gicp_with_its_defaults() -> None:
+    """Imports small_gicp with the environment a user of small_gicp alone would have: it bundles
+    its own libgomp, which reads `GOMP_SPINCOUNT` when it loads, and `import vinetwin` sets that
+    variable for numba's libgomp (`vinetwin.GOMP_SPINCOUNT`, `docs/render.md`). Run before any
+    of our parallel kernels (numba's libgomp loads at the first, and reads it then)."""
+    ours = os.environ.get("GOMP_SPINCOUNT") == vinetwin.GOMP_SPINCOUNT
+    if ours:
+        del os.environ["GOMP_SPINCOUNT"]
+    try:
+        import small_gicp  # noqa: F401
+    finally:
+        if ours:
+            os.environ["GOMP_SPINCOUNT"] = vinetwin.GOMP_SPINCOUNT
 
 
 def small_gicp_method(
@@ -408,6 +424,7 @@ def main() -> None:
         "ICPConfig.association_in_use); tree: the exact k-d tree at every level, to compare",
     )  # fmt: skip
     args = ap.parse_args()
+    import_small_gicp_with_its_defaults()
     if args.quick:
         args.trials, args.repeats = 1, 1
     twin = Twin.load(args.twin)

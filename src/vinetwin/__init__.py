@@ -10,13 +10,13 @@ libraries (open3d, pyrender, mujoco, viser, pycolmap) load only in the modules t
 import os
 
 #: Spins of an idle OpenMP (libgomp) thread before it sleeps; libgomp's default is 300000.
-#: numba's ICP kernels and Open3D run on libgomp, whose threads spin a few milliseconds after
-#: each parallel region: on a 2-core machine the next frame's perception threads, which follow
-#: the ICP's last region in a back-to-back servo loop, then waited for a core (the dense vine's
-#: 2 mm perception 7-9 ms instead of 5-6). 10000 still keeps them awake between the ICP's own
-#: regions (its time unchanged; benchmarks/icp.py's peers unchanged within their noise; the
-#: figures in docs/results/speed.md). libgomp reads it when it loads, so it is set on the
-#: package's import, before anything loads it; a value already in the environment wins.
+#: numba's parallel kernels (the ICP's) run on libgomp, whose threads spin a few milliseconds
+#: after each parallel region: on a 2-core machine the next frame's perception threads, which
+#: follow the ICP's last region in a back-to-back servo loop, then waited for a core (the dense
+#: vine's 2 mm perception 7-9 ms instead of 5-6). 10000 still keeps them awake between the
+#: ICP's own regions (its time unchanged). libgomp reads it when it loads (numba's at its first
+#: parallel kernel), so it is set on the package's import; a value already in the environment
+#: wins. `benchmarks/icp.py` loads small_gicp (its own libgomp) without it.
 GOMP_SPINCOUNT = "10000"
 os.environ.setdefault("GOMP_SPINCOUNT", GOMP_SPINCOUNT)
 
