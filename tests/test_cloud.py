@@ -314,3 +314,36 @@ def test_decimation_samples_the_same_rays_and_keeps_the_surface() -> None:
     for bad in (0, 9, 1.5, True):
         with pytest.raises(InputError, match="decimation"):
             PerceptionConfig(decimation=bad)  # type: ignore[arg-type]
+
+
+def test_bands_run_in_order_on_threads_and_raise_a_band_s_error() -> None:
+    """`_bands.run` calls each band of rows once, the first in the calling thread, returns their
+    results in band order, and raises an exception from any band; `_bands.cuts` splits rows
+    into bands of about equal work."""
+    import threading
+
+    from vinetwin import _bands
+
+    work = np.concatenate([[0], np.cumsum([0, 5, 5, 0, 0, 10, 0, 10, 0, 0])])  # 10 rows
+    cuts = _bands.cuts(work, 3)
+    assert cuts == [0, 3, 6, 10]
+    assert [int(work[b] - work[a]) for a, b in itertools.pairwise(cuts)] == [10, 10, 10]
+    assert _bands.cuts(work, 1) == [0, 10]
+    main = threading.get_ident()
+    seen: list[tuple[int, int, bool]] = []
+
+    def band(scale: int, v0: int, v1: int) -> list[int]:
+        seen.append((v0, v1, threading.get_ident() == main))
+        return [scale * v for v in range(v0, v1)]
+
+    out = _bands.run(band, (2,), [0, 3, 7, 10])
+    assert out == [[0, 2, 4], [6, 8, 10, 12], [14, 16, 18]]
+    assert sorted(seen) == [(0, 3, True), (3, 7, False), (7, 10, False)]
+
+    def failing(v0: int, v1: int) -> int:
+        if v0 == 5:
+            raise ValueError("band 2")
+        return v1 - v0
+
+    with pytest.raises(ValueError, match="band 2"):
+        _bands.run(failing, (), [0, 5, 10])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import shutil
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -585,21 +586,30 @@ def _d405_numpy(
         SensorConfig(quantize=False, noise=False, edge_fatten=0.0),
     ],
 )
-def test_compiled_d405_model_reproduces_the_numpy_formulation(cfg: SensorConfig) -> None:
+def test_compiled_d405_model_reproduces_the_numpy_formulation(
+    cfg: SensorConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The compiled D405 model gives, bit for bit, what its numpy formulation gives from the
-    same generator state, on a rendered view of the sample (silhouettes, range, holes)."""
+    same generator state, on a rendered view of the sample (silhouettes, range, holes), in one
+    band of rows and in three run on threads (`vinetwin._bands`)."""
+    from vinetwin import _bands
+    from vinetwin.render import sensor
     from vinetwin.twin import Twin
 
     twin = Twin.load(ROOT / "samples" / "vine_bilateral.twin")
     mesh = twin.load_mesh()
     backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
+    monkeypatch.setattr(sensor, "_MIN_BAND_PIXELS", 1000)
     for pose in twin.poses[:3]:
         clean = backend.render(pose.T_vine_camera)
         clean[100:110, 200:260] = np.nan  # holes that are NaN rather than 0
-        ours = apply_d405_model(clean, twin.camera, np.random.default_rng(5), cfg)
+        clean[300:302, 10:20] = -0.2  # and negative
         ref = _d405_numpy(clean, twin.camera, np.random.default_rng(5), cfg)
-        assert np.array_equal(ours, ref)
-        assert (ours > 0).sum() > 1000
+        for threads in (1, 3):
+            monkeypatch.setattr(_bands, "threads", lambda n=threads: n)
+            ours = apply_d405_model(clean, twin.camera, np.random.default_rng(5), cfg)
+            assert np.array_equal(ours, ref)
+        assert (ref > 0).sum() > 1000
 
 
 @pytest.mark.parametrize(("shape", "w"), [((37, 53), 1), ((40, 31), 2), ((25, 1), 1), ((1, 30), 3)])
@@ -627,3 +637,9 @@ def test_silhouette_search_matches_scipy_window_filters(shape: tuple[int, int], 
     np.testing.assert_array_equal(eu, ru)
     np.testing.assert_array_equal(nv, near[rv, ru])
     np.testing.assert_array_equal(fv, far[rv, ru])
+    # in bands of rows (each reads w rows beyond its own), joined in order: the same pixels
+    for split in ((0, shape[0] // 3, shape[0]), (0, 1, shape[0] // 2, shape[0])):
+        cuts = sorted(set(split))  # the one-row image: a single band
+        bands = [_kernels.d405_edges_rows(d, w, np.float32(0.05), a, b) for a, b in pairwise(cuts)]
+        for k, want in enumerate((ev, eu, nv, fv)):
+            np.testing.assert_array_equal(np.concatenate([b[k] for b in bands]), want)

@@ -68,7 +68,12 @@ class CameraFrame:
     @property
     def depth(self) -> npt.NDArray[np.float32]:
         """z-depth in metres (0 = no data)."""
-        return self.counts.astype(np.float32) * np.float32(self.depth_unit)
+        from vinetwin import _kernels
+
+        c = np.ascontiguousarray(self.counts)
+        out = np.empty(c.shape, np.float32)
+        _kernels.counts_to_metres(c.reshape(-1), np.float32(self.depth_unit), out.reshape(-1))
+        return out
 
 
 def quantize_depth(depth: Any, depth_unit: float) -> npt.NDArray[np.uint16]:

@@ -23,7 +23,7 @@ from typing import Any, Literal, Protocol, cast
 import numpy as np
 import numpy.typing as npt
 
-from vinetwin import _kernels, _lazy
+from vinetwin import _bands, _kernels, _lazy
 from vinetwin import conventions as cv
 from vinetwin.camera import CameraModel
 from vinetwin.errors import BackendUnavailable, InputError
@@ -353,7 +353,11 @@ class MujocoBackend:
         mj.mjr_render(r._rect, r._scene, r._mjr_context)
         mj.mjr_readPixels(None, self._buf, r._rect, r._mjr_context)
         out = np.empty_like(self._buf)
-        _kernels.gl_reverse_z_depth(self._buf, *self._fused, 0.999 * self._far, out)
+        args = (self._buf, *self._fused, 0.999 * self._far, out)
+        bands = min(_bands.threads(), 2)  # memory-bound: more bands gain nothing
+        _bands.run(
+            _kernels.gl_reverse_z_depth, args, [out.shape[0] * b // bands for b in range(bands + 1)]
+        )
         return out
 
     def close(self) -> None:
