@@ -131,10 +131,11 @@ def test_statistical_outliers_grid_search_equals_the_tree(
 def test_fused_perception_pass_equals_the_two_steps(
     voxel: float, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """`depth_voxels` (one pass) gives the voxels of `organised_points` followed by
-    `voxel_grid`, in the same order, with the same points and normal sums to rounding, on a
-    noisy scene with canes, a slanted leaf and flying pixels; and so does the chain's pass in
-    2 and 3 bands of rows run in threads and merged in order (`cloud._depth_voxels`)."""
+    """`depth_voxel_band` over all rows (one pass) gives the voxels of `organised_points`
+    followed by `voxel_grid`, in the same order, with the same points and normal sums to
+    rounding, on a noisy scene with canes, a slanted leaf and flying pixels; and so does the
+    chain's pass in 2 and 3 bands of rows run in threads and merged in order
+    (`cloud._depth_voxels`)."""
     from vinetwin import _kernels, cloud
 
     cam = d405("848x480")
@@ -149,7 +150,8 @@ def test_fused_perception_pass_equals_the_two_steps(
     o = (0.0005, -0.0003, 0.0001)
     pts, nrm = _kernels.organised_points(*args, True)
     a, an = _kernels.voxel_grid(pts, nrm, voxel, *o, True)
-    b, bn = _kernels.depth_voxels(*args, voxel, *o)
+    whole = _kernels.depth_voxel_band(*args, voxel, *o, 0, depth.shape[0])
+    b, bn = _kernels.merge_voxel_bands(*whole, np.array([len(whole[3])]))
     assert len(a) > 1000
     np.testing.assert_allclose(b, a, rtol=0, atol=1e-15)
     np.testing.assert_allclose(bn, an, rtol=1e-12, atol=1e-18)

@@ -503,7 +503,7 @@ def _voxel_rows(
     nacc: np.ndarray,
     cnt: np.ndarray,
 ) -> int:
-    """Rows v0..v1 of `depth_voxels` into the given arrays (room for one voxel per kept pixel):
+    """Rows v0..v1 of `depth_voxel_band` into the given arrays (room for one voxel per kept pixel):
     each voxel's key, sums of points and normals, pixel count, in order of first occurrence.
     Returns the number of voxels."""
     H, W = depth.shape
@@ -589,10 +589,12 @@ def depth_voxel_band(
     v0: int,
     v1: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rows v0..v1 of `depth_voxels` before their centroids: each voxel's key, the sums of its
-    points and of its pixels' normals and its pixel count, in order of first occurrence. The
-    flying-pixel filter runs on rows v0 - step .. v1 + step (the normals read their keep
-    flags), so bands of rows are independent: `merge_voxel_bands` joins them."""
+    """`organised_points` and `voxel_grid` in one pass over rows v0..v1, without the per-pixel
+    arrays, before the centroids: each occupied voxel's key, the sums of its points and of its
+    pixels' (unnormalised) normals and its pixel count, voxels in order of first occurrence, as
+    the two kernels run one after the other give them. The flying-pixel filter runs on rows
+    v0 - step .. v1 + step (the normals read their keep flags), so bands of rows are
+    independent: `merge_voxel_bands` joins them (`vinetwin.cloud` runs bands on threads)."""
     H, W = depth.shape
     keep = np.zeros(depth.shape, np.bool_)
     _keep_rows(depth, dmin, dmax, edge_threshold, keep, max(0, v0 - step), min(H, v1 + step))
@@ -662,34 +664,6 @@ def merge_voxel_bands(
         for k in range(3):
             out[s, k] = macc[s, k] / mcnt[s]
     return out, mnacc[:m].copy()
-
-
-@nb.njit(cache=True, nogil=True)
-def depth_voxels(
-    depth: np.ndarray,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    dmin: float,
-    dmax: float,
-    edge_threshold: float,
-    step: int,
-    voxel: float,
-    ox: float,
-    oy: float,
-    oz: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """`organised_points` and `voxel_grid` in one pass, without the per-pixel arrays: the
-    centroid of each occupied voxel and the sum of its pixels' (unnormalised) normals, voxels in
-    order of first occurrence, as the two kernels run one after the other give them. One band
-    of all rows; `vinetwin.cloud` runs bands in threads (`depth_voxel_band`)."""
-    skey, acc, nacc, cnt = depth_voxel_band(
-        depth, fx, fy, cx, cy, dmin, dmax, edge_threshold, step, voxel, ox, oy, oz,
-        0, depth.shape[0],
-    )  # fmt: skip
-    found = np.full(1, skey.shape[0], np.int64)
-    return merge_voxel_bands(skey, acc, nacc, cnt, found)
 
 
 @nb.njit(cache=True, nogil=True)

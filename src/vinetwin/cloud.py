@@ -140,10 +140,11 @@ def _depth_voxels(
     o: Any,
     threads: int | None = None,
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Steps 1-4 and the per-pixel normals (`_kernels.depth_voxels`), the image cut into
+    """Steps 1-4 and the per-pixel normals (`_kernels.depth_voxel_band`), the image cut into
     `threads` (default `_threads()`) bands of rows with equal numbers of in-range pixels
-    (`vinetwin._bands`). The same voxels in the same order as one band, their sums equal to
-    rounding."""
+    (`vinetwin._bands`), the bands merged in row order (`_kernels.merge_voxel_bands`): voxel
+    centroids and normal sums. The same voxels in the same order as one band, their sums equal
+    to rounding."""
     from vinetwin import _bands, _kernels
 
     dmin = max(cfg.min_depth, 1e-6)
@@ -152,15 +153,17 @@ def _depth_voxels(
         step, float(cfg.voxel_size), float(o[0]), float(o[1]), float(o[2]),
     )  # fmt: skip
     threads = _threads() if threads is None else threads
-    if threads <= 1 or d.shape[0] < 32:
-        return _kernels.depth_voxels(*args)
-    work = _kernels.valid_rows(d, dmin, cfg.max_depth)  # in-range pixels before each row
-    bands = max(1, min(threads, int(work[-1]) // _MIN_BAND_PIXELS))
-    if bands == 1:
-        return _kernels.depth_voxels(*args)
-    parts = _bands.run(_kernels.depth_voxel_band, args, _bands.cuts(work, bands))
+    H = d.shape[0]
+    rows = [0, H]
+    if threads > 1 and H >= 32:
+        work = _kernels.valid_rows(d, dmin, cfg.max_depth)  # in-range pixels before each row
+        bands = max(1, min(threads, int(work[-1]) // _MIN_BAND_PIXELS))
+        rows = _bands.cuts(work, bands)
+    parts = _bands.run(_kernels.depth_voxel_band, args, rows)
     found = np.array([len(p[3]) for p in parts], np.int64)
-    joined = [np.concatenate([p[k] for p in parts]) for k in range(4)]
+    joined = (
+        parts[0] if len(parts) == 1 else [np.concatenate([p[k] for p in parts]) for k in range(4)]
+    )
     return _kernels.merge_voxel_bands(joined[0], joined[1], joined[2], joined[3], found)
 
 
