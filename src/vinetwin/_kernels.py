@@ -412,10 +412,10 @@ def _keep_rows(
     v0: int,
     v1: int,
 ) -> None:
-    """Rows v0..v1 of `_keep_mask` into keep. A pixel at depth z is the far side of a jump to
-    a valid 4-neighbour at zn when z - zn > edge_threshold * zn, that is zn < z / (1 +
-    edge_threshold) (zn is then also below dmax); interior pixels test their four neighbours
-    without bounds checks."""
+    """Rows v0..v1 of the keep mask into keep: valid pixels (range) that survive the
+    flying-pixel filter. A pixel at depth z is the far side of a jump to a valid 4-neighbour at
+    zn when z - zn > edge_threshold * zn, that is zn < z / (1 + edge_threshold) (zn is then
+    also below dmax); interior pixels test their four neighbours without bounds checks."""
     H, W = depth.shape
     inv = 1.0 / (1.0 + edge_threshold) if edge_threshold > 0 else 0.0
     for v in range(v0, v1):
