@@ -349,3 +349,21 @@ def test_bands_run_in_order_on_threads_and_raise_a_band_s_error() -> None:
 
     with pytest.raises(ValueError, match="band 2"):
         _bands.run(failing, (), [0, 5, 10])
+
+
+def test_import_sets_the_openmp_spin_count_unless_the_environment_does() -> None:
+    """`import vinetwin` sets GOMP_SPINCOUNT (read by libgomp when it loads) to
+    `vinetwin.GOMP_SPINCOUNT`, and keeps a value the environment already holds."""
+    import os
+    import subprocess
+    import sys
+
+    import vinetwin
+
+    code = "import os, vinetwin; print(os.environ['GOMP_SPINCOUNT'])"
+    env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.stdout.strip() == vinetwin.GOMP_SPINCOUNT == "10000"
+    env["GOMP_SPINCOUNT"] = "123"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.stdout.strip() == "123"
