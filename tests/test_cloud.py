@@ -237,6 +237,9 @@ def test_flying_pixel_mask_follows_its_rule_at_every_pixel(rng: np.random.Genera
         for v0, v1 in itertools.pairwise(cuts):
             _kernels._keep_rows(depth, dmin, dmax, t, keep, v0, v1)
         np.testing.assert_array_equal(keep, expected)
+    keep = np.zeros(depth.shape, bool)  # no flying-pixel filter: the range alone
+    _kernels._keep_rows(depth, dmin, dmax, 0.0, keep, 0, 270)
+    np.testing.assert_array_equal(keep, ok)
     assert 0.2 < expected.mean() < 0.6
 
 

@@ -403,6 +403,28 @@ def _nearer(zn: float, dmin: float, lim: float) -> bool:
 
 
 @nb.njit(cache=True, nogil=True)
+def _keep_pixel(
+    depth: np.ndarray, dmin: float, dmax: float, inv: float, keep: np.ndarray, v: int, u: int
+) -> None:
+    """`_keep_rows` for one pixel, any pixel (its neighbours tested within the image)."""
+    H, W = depth.shape
+    z = np.float64(depth[v, u])
+    if not (z > dmin and z <= dmax):  # also rejects NaN
+        return
+    lim = z * inv
+    ok = True
+    if v > 0 and _nearer(depth[v - 1, u], dmin, lim):
+        ok = False
+    if v < H - 1 and _nearer(depth[v + 1, u], dmin, lim):
+        ok = False
+    if u > 0 and _nearer(depth[v, u - 1], dmin, lim):
+        ok = False
+    if u < W - 1 and _nearer(depth[v, u + 1], dmin, lim):
+        ok = False
+    keep[v, u] = ok
+
+
+@nb.njit(cache=True, nogil=True)
 def _keep_rows(
     depth: np.ndarray,
     dmin: float,
@@ -412,40 +434,40 @@ def _keep_rows(
     v0: int,
     v1: int,
 ) -> None:
-    """Rows v0..v1 of the keep mask into keep: valid pixels (range) that survive the
+    """Rows v0..v1 of the keep mask into keep (zeros): valid pixels (range) that survive the
     flying-pixel filter. A pixel at depth z is the far side of a jump to a valid 4-neighbour at
     zn when z - zn > edge_threshold * zn, that is zn < z / (1 + edge_threshold) (zn is then
-    also below dmax); interior pixels test their four neighbours without bounds checks."""
+    also below dmax). Interior pixels test their four neighbours without branches (the loop
+    vectorises: 0.6 against 0.9-1.4 ms per 848x480 image), the border ones one by one."""
     H, W = depth.shape
-    inv = 1.0 / (1.0 + edge_threshold) if edge_threshold > 0 else 0.0
+    if edge_threshold <= 0:
+        for v in range(v0, v1):
+            for u in range(W):
+                z = np.float64(depth[v, u])
+                keep[v, u] = (z > dmin) & (z <= dmax)  # NaN: False
+        return
+    inv = 1.0 / (1.0 + edge_threshold)
     for v in range(v0, v1):
-        inner = 0 < v < H - 1
-        for u in range(W):
-            z = np.float64(depth[v, u])
-            if not (z > dmin and z <= dmax):  # also rejects NaN
-                continue
-            if edge_threshold <= 0:
-                keep[v, u] = True
-                continue
+        if not 0 < v < H - 1:
+            for u in range(W):
+                _keep_pixel(depth, dmin, dmax, inv, keep, v, u)
+            continue
+        up, row, dn, out = depth[v - 1], depth[v], depth[v + 1], keep[v]
+        for u in range(1, W - 1):
+            z = np.float64(row[u])
             lim = z * inv
-            if inner and 0 < u < W - 1:
-                keep[v, u] = not (
-                    _nearer(depth[v - 1, u], dmin, lim)
-                    or _nearer(depth[v + 1, u], dmin, lim)
-                    or _nearer(depth[v, u - 1], dmin, lim)
-                    or _nearer(depth[v, u + 1], dmin, lim)
-                )
-                continue
-            ok = True
-            if v > 0 and _nearer(depth[v - 1, u], dmin, lim):
-                ok = False
-            if v < H - 1 and _nearer(depth[v + 1, u], dmin, lim):
-                ok = False
-            if u > 0 and _nearer(depth[v, u - 1], dmin, lim):
-                ok = False
-            if u < W - 1 and _nearer(depth[v, u + 1], dmin, lim):
-                ok = False
-            keep[v, u] = ok
+            zu, zd = np.float64(up[u]), np.float64(dn[u])
+            zl, zr = np.float64(row[u - 1]), np.float64(row[u + 1])
+            near = (
+                ((zu > dmin) & (zu < lim))
+                | ((zd > dmin) & (zd < lim))
+                | ((zl > dmin) & (zl < lim))
+                | ((zr > dmin) & (zr < lim))
+            )
+            out[u] = (z > dmin) & (z <= dmax) & (not near)
+        _keep_pixel(depth, dmin, dmax, inv, keep, v, 0)
+        if W > 1:
+            _keep_pixel(depth, dmin, dmax, inv, keep, v, W - 1)
 
 
 @nb.njit(cache=True, nogil=True)
