@@ -49,6 +49,11 @@ def cuts(work: npt.NDArray[np.int64], bands: int) -> list[int]:
     return [0, *inner, len(work) - 1]
 
 
+def even(rows: int, bands: int) -> list[int]:
+    """Row cuts of `bands` bands of equal height over `rows` rows."""
+    return [rows * b // bands for b in range(bands + 1)]
+
+
 def run(fn: Callable[..., Any], args: Sequence[Any], rows: Sequence[int]) -> list[Any]:
     """`fn(*args, v0, v1)` for each band of rows [rows[b], rows[b + 1]), the first in this
     thread and the others on the pool; their results in band order (an exception in a band is

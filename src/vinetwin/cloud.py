@@ -120,13 +120,6 @@ class Cloud:
         return len(self) == 0
 
 
-def _threads() -> int:
-    """Threads of the perception pass (`vinetwin._bands`: numba's thread count)."""
-    from vinetwin import _bands
-
-    return _bands.threads()
-
-
 #: In-range pixels below which an image is one band (a band's hand-off to a thread costs tens
 #: of microseconds; half of 20k pixels takes about 0.4 ms).
 _MIN_BAND_PIXELS = 20_000
@@ -141,7 +134,7 @@ def _depth_voxels(
     threads: int | None = None,
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     """Steps 1-4 and the per-pixel normals (`_kernels.depth_voxel_band`), the image cut into
-    `threads` (default `_threads()`) bands of rows with equal numbers of in-range pixels
+    `threads` (default `_bands.threads()`, numba's thread count) bands of rows with equal numbers of in-range pixels
     (`vinetwin._bands`), the bands merged in row order (`_kernels.merge_voxel_bands`): voxel
     centroids and normal sums. The same voxels in the same order as one band, their sums equal
     to rounding."""
@@ -152,7 +145,7 @@ def _depth_voxels(
         d, camera.fx, camera.fy, camera.cx, camera.cy, dmin, cfg.max_depth, cfg.edge_threshold,
         step, float(cfg.voxel_size), float(o[0]), float(o[1]), float(o[2]),
     )  # fmt: skip
-    threads = _threads() if threads is None else threads
+    threads = _bands.threads() if threads is None else threads
     H = d.shape[0]
     rows = [0, H]
     if threads > 1 and H >= 32:
@@ -215,10 +208,10 @@ def statistical_outliers(
 
     pts = np.ascontiguousarray(points, dtype=np.float64)
     if spacing is not None and spacing > 0:
-        from vinetwin import _kernels
+        from vinetwin import _bands, _kernels
 
         cell = spacing * max(1.0, 0.75 * math.sqrt(neighbors))
-        mean_d = _kernels.knn_mean_distance(pts, int(neighbors), cell, 3, _threads())
+        mean_d = _kernels.knn_mean_distance(pts, int(neighbors), cell, 3, _bands.threads())
         todo = np.flatnonzero(np.isnan(mean_d))
         if 0 < len(todo) <= 32:  # a few isolated points: against every point (no tree to build)
             for i in todo:

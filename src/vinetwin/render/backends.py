@@ -355,9 +355,7 @@ class MujocoBackend:
         out = np.empty_like(self._buf)
         args = (self._buf, *self._fused, 0.999 * self._far, out)
         bands = min(_bands.threads(), 2)  # memory-bound: more bands gain nothing
-        _bands.run(
-            _kernels.gl_reverse_z_depth, args, [out.shape[0] * b // bands for b in range(bands + 1)]
-        )
+        _bands.run(_kernels.gl_reverse_z_depth, args, _bands.even(out.shape[0], bands))
         return out
 
     def close(self) -> None:

@@ -105,8 +105,7 @@ def apply_d405_model(
         if bands == 1:
             ev, eu, nv, fv = _kernels.d405_edges(d, w, jump)
         else:
-            cut = [rows * b // bands for b in range(bands + 1)]
-            parts = _bands.run(_kernels.d405_edges_rows, (d, w, jump), cut)
+            parts = _bands.run(_kernels.d405_edges_rows, (d, w, jump), _bands.even(rows, bands))
             ev, eu, nv, fv = (np.concatenate([p[k] for p in parts]) for k in range(4))
         u1 = rng.random(len(ev), dtype=np.float32)
         u2 = rng.random(len(ev), dtype=np.float32)
