@@ -17,6 +17,7 @@ throughput than 1; pyrender and MuJoCo render on one core and do gain from worke
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import logging
 import os
@@ -29,6 +30,7 @@ from typing import Any, Literal
 import numpy as np
 
 import vinetwin
+from vinetwin import _kernels
 from vinetwin._faults import fault_point
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import PerceptionConfig
@@ -41,7 +43,7 @@ from vinetwin.executor import (
     worker_threads,
     workers_used,
 )
-from vinetwin.files import file_sha256, sync_to_disk
+from vinetwin.files import atomic_write_bytes, file_sha256, sync_to_disk
 from vinetwin.jobstore import JobStore
 from vinetwin.mesh import load_mesh_arrays
 from vinetwin.render.backends import DepthBackend, get_backend, resolve_backend
@@ -50,9 +52,8 @@ from vinetwin.render.reference import (
     digest_inputs,
     pose_digest,
     pose_seed,
+    reference_files,
     render_reference,
-    write_pcd,
-    write_ply,
 )
 from vinetwin.render.sensor import SensorConfig
 from vinetwin.twin.model import Twin, check_id
@@ -129,16 +130,18 @@ def _run_job(job: _Job) -> PoseResult:
         )
         out = Path(job.out_dir)
         fault_point(key, "render")
-        write_ply(out / f"{job.pose_id}.ply", ref.cloud, sync=False)
-        fault_point(key, "ply")
-        write_pcd(out / f"{job.pose_id}.pcd", ref.cloud, sync=False)
+        files = reference_files(ref.cloud)
+        for ext, data in files.items():  # ply, then pcd
+            atomic_write_bytes(out / f"{job.pose_id}.{ext}", data, sync=False)
+            fault_point(key, ext)
         warning = "" if len(ref.cloud) else "the view sees nothing: empty reference cloud"
         meta = {
             **job.meta,
-            "files_sha256": reference_hashes(out, job.pose_id),
+            # the hashes of the bytes written (`check_reference_files` reads them back)
+            "files_sha256": {ext: hashlib.sha256(data).hexdigest() for ext, data in files.items()},
             "points": len(ref.cloud),
             "has_normals": ref.cloud.normals is not None,
-            "valid_depth_pixels": int((ref.depth > 0).sum()),
+            "valid_depth_pixels": int(_kernels.valid_rows(ref.depth, 0.0, np.inf)[-1]),
             "warning": warning,
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         }

@@ -15,7 +15,6 @@ import numpy.typing as npt
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.errors import VinetwinError
-from vinetwin.files import atomic_write_bytes
 from vinetwin.render.backends import DepthBackend
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
 
@@ -67,31 +66,23 @@ def dense_cloud(
 
 
 # ----------------------------------------------------------------------------- files
-def write_ply(path: Path, cloud: Cloud, *, sync: bool = True) -> None:
-    """Binary little-endian PLY with float32 x y z (and nx ny nz when the cloud has normals);
-    `sync` as in `files.atomic_write_bytes`."""
-    names = ["x", "y", "z"] + (["nx", "ny", "nz"] if cloud.normals is not None else [])
-    data = cloud.points if cloud.normals is None else np.hstack([cloud.points, cloud.normals])
-    header = (
+def reference_files(cloud: Cloud) -> dict[str, bytes]:
+    """A reference cloud's files, by extension: `ply`, binary little-endian PLY with float32
+    x y z (and nx ny nz when the cloud has normals); `pcd`, PCL's PCD v0.7, binary, fields x y z
+    (normal_x normal_y normal_z), viewpoint at the origin. Both carry the same float32 body."""
+    has_normals = cloud.normals is not None
+    data = cloud.points if not has_normals else np.hstack([cloud.points, cloud.normals])
+    body = np.ascontiguousarray(data, dtype="<f4").tobytes()
+    names = ["x", "y", "z"] + (["nx", "ny", "nz"] if has_normals else [])
+    ply = (
         "ply\nformat binary_little_endian 1.0\ncomment vinetwin reference cloud, metres, camera frame (OpenCV)\n"
         f"element vertex {len(cloud)}\n"
         + "".join(f"property float {n}\n" for n in names)
         + "end_header\n"
     )
-    atomic_write_bytes(
-        path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes(), sync=sync
-    )
-
-
-def write_pcd(path: Path, cloud: Cloud, *, sync: bool = True) -> None:
-    """PCL's PCD v0.7, binary, fields x y z (normal_x normal_y normal_z), viewpoint at origin;
-    `sync` as in `files.atomic_write_bytes`."""
-    fields = ["x", "y", "z"] + (
-        ["normal_x", "normal_y", "normal_z"] if cloud.normals is not None else []
-    )
-    data = cloud.points if cloud.normals is None else np.hstack([cloud.points, cloud.normals])
+    fields = ["x", "y", "z"] + (["normal_x", "normal_y", "normal_z"] if has_normals else [])
     k = len(fields)
-    header = (
+    pcd = (
         "# .PCD v0.7 - Point Cloud Data file format\n"
         "VERSION 0.7\n"
         f"FIELDS {' '.join(fields)}\n"
@@ -100,13 +91,11 @@ def write_pcd(path: Path, cloud: Cloud, *, sync: bool = True) -> None:
         f"COUNT {' '.join(['1'] * k)}\n"
         f"WIDTH {len(cloud)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(cloud)}\nDATA binary\n"
     )
-    atomic_write_bytes(
-        path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes(), sync=sync
-    )
+    return {"ply": ply.encode("ascii") + body, "pcd": pcd.encode("ascii") + body}
 
 
 def read_reference_cloud(path: Path) -> Cloud:
-    """Reads a reference PLY written by `write_ply` (or any PLY Open3D can read)."""
+    """Reads a reference PLY written by `reference_files` (or any PLY Open3D can read)."""
     from vinetwin import _lazy
 
     o3d = _lazy.open3d()
