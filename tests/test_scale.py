@@ -104,6 +104,31 @@ def test_pool_workers_get_their_share_of_the_cores(monkeypatch: pytest.MonkeyPat
     assert os.environ["LP_NUM_THREADS"] == "7"
 
 
+def _log_at_exit(folder: str) -> int:
+    """Registers an exit handler and logs to a buffered file handler, neither flushed yet."""
+    import atexit
+    import logging
+
+    pid = os.getpid()
+    handler = logging.StreamHandler(open(Path(folder) / f"{pid}.log", "w"))
+    logging.getLogger("tests.worker_exit").addHandler(handler)
+    logging.getLogger("tests.worker_exit").warning("worker %d logged", pid)
+    atexit.register(lambda: (Path(folder) / f"{pid}.atexit").write_text("ran"))
+    return pid
+
+
+def test_pool_workers_leave_after_their_exit_handlers(tmp_path: Path) -> None:
+    """A worker skips the interpreter's teardown when the pool shuts down
+    (`executor._QuickExitProcess`), but its exit handlers still run and its log is flushed
+    and closed (logging's own exit handler)."""
+    outs = list(run_unordered(_log_at_exit, [str(tmp_path)] * 4, ExecutorConfig(workers=2)))
+    pids = {o.value for o in outs}
+    assert all(o.ok for o in outs) and 1 <= len(pids) <= 2
+    for pid in pids:
+        assert (tmp_path / f"{pid}.atexit").read_text() == "ran"
+        assert f"worker {pid} logged" in (tmp_path / f"{pid}.log").read_text()
+
+
 @pytest.mark.parametrize("kind", ["local", "ray"])
 def test_executor_isolates_a_failing_job(kind: str) -> None:
     if kind == "ray":

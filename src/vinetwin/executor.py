@@ -21,10 +21,12 @@ others), whose nodes must have vinetwin installed and see the twin folders at th
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import logging
-import multiprocessing as mp
 import os
 import signal
+import sys
 import threading
 import time
 from collections import OrderedDict
@@ -33,6 +35,8 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass
+from multiprocessing import util as mp_util
+from multiprocessing.context import SpawnContext, SpawnProcess
 from typing import Any
 
 from vinetwin._config import JsonFields
@@ -205,10 +209,38 @@ def _worker_env(workers: int) -> Iterator[None]:
                 os.environ[k] = v
 
 
+class _QuickExitProcess(SpawnProcess):
+    """A pool worker that leaves without the interpreter's teardown once the pool's loop has
+    ended normally (its shutdown sentinel): the exit handlers run (logging's flush among them),
+    the standard streams are flushed, then the process ends. The teardown it skips (freeing
+    every module's objects: numba's compiled code, MuJoCo, the EGL renderer) took 0.3-0.4 s of
+    CPU per worker at the end of every export, validation and campaign; the system frees all
+    of it at exit anyway. A worker that fails or is interrupted exits the usual way."""
+
+    def run(self) -> None:
+        super().run()
+        steps = (
+            sys.stdout.flush,
+            sys.stderr.flush,
+            atexit._run_exitfuncs,  # logging's flush, weakref finalizers, ...
+            getattr(mp_util, "_exit_function", None),  # what the worker's exit does first
+            getattr(mp_util, "_flush_std_streams", None),
+        )
+        for step in steps:
+            if step is not None:
+                with contextlib.suppress(Exception):
+                    step()
+        os._exit(0)
+
+
+class _QuickExitContext(SpawnContext):
+    Process = _QuickExitProcess
+
+
 def _new_pool(workers: int) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(
         workers,
-        mp_context=mp.get_context("spawn"),
+        mp_context=_QuickExitContext(),
         initializer=_die_with_parent,
         initargs=(os.getpid(),),
     )
