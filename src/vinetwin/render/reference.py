@@ -71,7 +71,7 @@ def reference_files(cloud: Cloud) -> dict[str, bytes]:
     x y z (and nx ny nz when the cloud has normals); `pcd`, PCL's PCD v0.7, binary, fields x y z
     (normal_x normal_y normal_z), viewpoint at the origin. Both carry the same float32 body."""
     has_normals = cloud.normals is not None
-    data = cloud.points if not has_normals else np.hstack([cloud.points, cloud.normals])
+    data = cloud.points if cloud.normals is None else np.hstack([cloud.points, cloud.normals])
     body = np.ascontiguousarray(data, dtype="<f4").tobytes()
     names = ["x", "y", "z"] + (["nx", "ny", "nz"] if has_normals else [])
     ply = (
