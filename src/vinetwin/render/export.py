@@ -223,9 +223,13 @@ def plan_export(
 ) -> tuple[list[PoseResult], list[_Job]]:
     """The poses already current (skipped) and the jobs that render the others."""
     sensor = sensor or SensorConfig()
-    ids = list(pose_ids) if pose_ids else [p.id for p in twin.poses]
-    backend = resolve_backend(backend, len(ids))
-    poses = [twin.pose(i) for i in ids]  # raises TwinError naming an unknown id
+    by_id = {p.id: p for p in twin.poses}  # one lookup per pose, not a scan of them all
+    poses = (
+        [by_id[i] if i in by_id else twin.pose(i) for i in pose_ids]  # TwinError: unknown id
+        if pose_ids
+        else list(twin.poses)
+    )
+    backend = resolve_backend(backend, len(poses))
     for p in poses:  # ids name the files written: never a path out of the folder
         check_id(p.id, "pose id")
     load_mesh_arrays(twin.mesh_path)  # refuse a bad mesh once, before any worker starts
