@@ -43,9 +43,9 @@ def atomic_write_bytes(path: Path, data: bytes, *, sync: bool = True) -> None:
 
     The new file gets the mode `open` would give it (rw-rw-rw- less the umask, applied by the
     system) or, when it replaces one, that file's mode. Plain `os` calls, not `tempfile` and a
-    Python file object: an export writes three files per reference, and their syscalls (the
-    umask read from /proc, a chmod, a file object's stat, ioctl and seeks) were a tenth of a
-    reference's time."""
+    Python file object: an export writes three files per reference, and the extra system
+    calls (the umask read from /proc, a chmod, a file object's stat, ioctl and seeks) cost
+    about 0.5 ms of a worker's 17 ms per reference."""
     path = Path(path)
     try:
         keep: int | None = path.stat().st_mode & 0o777

@@ -137,7 +137,7 @@ def _run_job(job: _Job) -> PoseResult:
         warning = "" if len(ref.cloud) else "the view sees nothing: empty reference cloud"
         meta = {
             **job.meta,
-            # the hashes of the bytes written (`check_reference_files` reads them back)
+            # the hashes of the bytes written (`check_reference_files` checks the files against them)
             "files_sha256": {ext: hashlib.sha256(data).hexdigest() for ext, data in files.items()},
             "points": len(ref.cloud),
             "has_normals": ref.cloud.normals is not None,
@@ -177,11 +177,6 @@ def _store(folder: Path) -> JobStore:
         digest_key="inputs_sha256",
         sync=False,
     )
-
-
-def reference_hashes(folder: Path, pose_id: str) -> dict[str, str]:
-    """The SHA-256 of a reference's cloud files (`ply`, `pcd`), as its sidecar records them."""
-    return {ext: file_sha256(folder / f"{pose_id}.{ext}") for ext in ("ply", "pcd")}
 
 
 def check_reference_files(folder: Path, pose_id: str) -> str:
