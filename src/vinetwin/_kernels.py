@@ -398,8 +398,9 @@ def clean_depth(src: np.ndarray, out: np.ndarray) -> tuple[int, int, int, int]:
 # ----------------------------------------------------------------------------- fused perception
 @nb.njit(cache=True, nogil=True, inline="always")
 def _nearer(zn: float, dmin: float, lim: float) -> bool:
-    """A valid neighbour depth (above dmin) nearer than `lim` (NaN: False)."""
-    return zn > dmin and zn < lim
+    """A valid neighbour depth (above dmin) nearer than `lim` (NaN: False). Without
+    branches, so the loops that call it vectorise."""
+    return (zn > dmin) & (zn < lim)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -456,13 +457,11 @@ def _keep_rows(
         for u in range(1, W - 1):
             z = np.float64(row[u])
             lim = z * inv
-            zu, zd = np.float64(up[u]), np.float64(dn[u])
-            zl, zr = np.float64(row[u - 1]), np.float64(row[u + 1])
             near = (
-                ((zu > dmin) & (zu < lim))
-                | ((zd > dmin) & (zd < lim))
-                | ((zl > dmin) & (zl < lim))
-                | ((zr > dmin) & (zr < lim))
+                _nearer(np.float64(up[u]), dmin, lim)
+                | _nearer(np.float64(dn[u]), dmin, lim)
+                | _nearer(np.float64(row[u - 1]), dmin, lim)
+                | _nearer(np.float64(row[u + 1]), dmin, lim)
             )
             out[u] = (z > dmin) & (z <= dmax) & (not near)
         _keep_pixel(depth, dmin, dmax, inv, keep, v, 0)

@@ -219,17 +219,13 @@ class _QuickExitProcess(SpawnProcess):
 
     def run(self) -> None:
         super().run()
-        steps = (
-            sys.stdout.flush,
-            sys.stderr.flush,
-            atexit._run_exitfuncs,  # logging's flush, weakref finalizers, ...
-            getattr(mp_util, "_exit_function", None),  # what the worker's exit does first
-            getattr(mp_util, "_flush_std_streams", None),
-        )
-        for step in steps:
-            if step is not None:
-                with contextlib.suppress(Exception):
-                    step()
+        with contextlib.suppress(Exception):
+            atexit._run_exitfuncs()  # logging's flush, weakref finalizers, ...
+        with contextlib.suppress(Exception):
+            mp_util._exit_function()  # pyright: ignore[reportAttributeAccessIssue]
+        for stream in (sys.stdout, sys.stderr):  # what a normal exit flushes last
+            with contextlib.suppress(Exception):
+                stream.flush()
         os._exit(0)
 
 

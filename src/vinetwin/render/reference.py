@@ -70,17 +70,17 @@ def reference_files(cloud: Cloud) -> dict[str, bytes]:
     """A reference cloud's files, by extension: `ply`, binary little-endian PLY with float32
     x y z (and nx ny nz when the cloud has normals); `pcd`, PCL's PCD v0.7, binary, fields x y z
     (normal_x normal_y normal_z), viewpoint at the origin. Both carry the same float32 body."""
-    has_normals = cloud.normals is not None
-    data = cloud.points if cloud.normals is None else np.hstack([cloud.points, cloud.normals])
+    normals = cloud.normals
+    data = cloud.points if normals is None else np.hstack([cloud.points, normals])
     body = np.ascontiguousarray(data, dtype="<f4").tobytes()
-    names = ["x", "y", "z"] + (["nx", "ny", "nz"] if has_normals else [])
+    names = ["x", "y", "z"] + ([] if normals is None else ["nx", "ny", "nz"])
     ply = (
         "ply\nformat binary_little_endian 1.0\ncomment vinetwin reference cloud, metres, camera frame (OpenCV)\n"
         f"element vertex {len(cloud)}\n"
         + "".join(f"property float {n}\n" for n in names)
         + "end_header\n"
     )
-    fields = ["x", "y", "z"] + (["normal_x", "normal_y", "normal_z"] if has_normals else [])
+    fields = ["x", "y", "z"] + ([] if normals is None else ["normal_x", "normal_y", "normal_z"])
     k = len(fields)
     pcd = (
         "# .PCD v0.7 - Point Cloud Data file format\n"
