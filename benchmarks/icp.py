@@ -17,7 +17,11 @@ copies, normals and (small_gicp) k-d tree; the current cloud's downsampling, con
 GICP) covariances are timed. Open3D's legacy API rebuilds the target's tree on every call; that is
 the library's behaviour and is timed. Convergence: ours 1e-5 m / 1e-5 rad per update,
 small_gicp the same epsilons, Open3D relative fitness and RMSE 1e-6; at most 40 iterations a
-level for all.
+level for all. Timing: per case, each library's methods are warmed up, then timed in rounds,
+each round every method once in an order rotated by one (a drift of the machine's speed lands
+on them alike); one library after another (interleaved with small_gicp, whose OpenMP threads
+spin after each call, ours ran 1.5-2.9x slower: `measure`). The servo cycles interleave the
+four variants the same way.
 
 Printed per method: median time (ms), median iterations, translation and rotation error against
 the true transform (median and 90th percentile), the fraction within 1 mm / 0.1 deg, and the
@@ -271,37 +275,57 @@ def ours_method(
 
 # ----------------------------------------------------------------------------- measuring
 def measure(
-    name: str,
-    prepare: Callable[[Case], Callable[[], tuple[Any, int]]],
+    methods: dict[str, Callable[[Case], Callable[[], tuple[Any, int]]]],
     cases: list[Case],
     repeats: int,
-) -> dict[str, Any]:
-    times, iters, et, er = [], [], [], []
+) -> list[dict[str, Any]]:
+    """The methods of one library on each case, interleaved: per case every method is prepared
+    and warmed up, then each of the `repeats` rounds times every method once, the round's order
+    rotated by one, so that a drift of the machine's speed (up to 1.4x within an hour here)
+    lands on the methods alike. A method's time on a case is the median of its rounds; its row,
+    the median over the cases. Call it once per library (`main`): interleaved with small_gicp,
+    ours took 1.5-2.9x their time alone, since small_gicp's bundled libgomp keeps its threads
+    spinning after each call (its default, which a user of small_gicp alone has), taking a core
+    from whatever runs next; with `OMP_WAIT_POLICY=passive` the difference went away
+    (docs/results/speed.md)."""
+    names = list(methods)
+    times: dict[str, list[float]] = {n: [] for n in names}
+    iters: dict[str, list[int]] = {n: [] for n in names}
+    et: dict[str, list[float]] = {n: [] for n in names}
+    er: dict[str, list[float]] = {n: [] for n in names}
     for case in cases:
-        run = prepare(case)
-        T, it = run()  # warm-up (compilation, caches)
-        ts = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            T, it = run()
-            ts.append(time.perf_counter() - t0)
-        times.append(statistics.median(ts))
-        iters.append(it)
-        dt, dr = fr.pose_error(T, case.T_true)
-        et.append(1000 * dt)
-        er.append(float(np.degrees(dr)))
-    a_t, a_r = np.array(et), np.array(er)
-    return {
-        "method": name,
-        "ms": 1000 * statistics.median(times),
-        "iterations": float(np.median(iters)) if min(iters) >= 0 else None,
-        "t_mm_median": float(np.median(a_t)),
-        "t_mm_p90": float(np.percentile(a_t, 90)),
-        "r_deg_median": float(np.median(a_r)),
-        "r_deg_p90": float(np.percentile(a_r, 90)),
-        "within_1mm_0.1deg": float(np.mean((a_t < 1.0) & (a_r < 0.1))),
-        "within_5mm_1deg": float(np.mean((a_t < 5.0) & (a_r < 1.0))),
-    }
+        runs = {n: methods[n](case) for n in names}
+        last = {n: run() for n, run in runs.items()}  # warm-up (compilation, caches)
+        ts: dict[str, list[float]] = {n: [] for n in names}
+        for k in range(repeats):
+            for n in names[k % len(names) :] + names[: k % len(names)]:
+                t0 = time.perf_counter()
+                last[n] = runs[n]()
+                ts[n].append(time.perf_counter() - t0)
+        for n in names:
+            T, it = last[n]
+            times[n].append(statistics.median(ts[n]))
+            iters[n].append(it)
+            dt, dr = fr.pose_error(T, case.T_true)
+            et[n].append(1000 * dt)
+            er[n].append(float(np.degrees(dr)))
+    rows = []
+    for n in names:
+        a_t, a_r = np.array(et[n]), np.array(er[n])
+        rows.append(
+            {
+                "method": n,
+                "ms": 1000 * statistics.median(times[n]),
+                "iterations": float(np.median(iters[n])) if min(iters[n]) >= 0 else None,
+                "t_mm_median": float(np.median(a_t)),
+                "t_mm_p90": float(np.percentile(a_t, 90)),
+                "r_deg_median": float(np.median(a_r)),
+                "r_deg_p90": float(np.percentile(a_r, 90)),
+                "within_1mm_0.1deg": float(np.mean((a_t < 1.0) & (a_r < 0.1))),
+                "within_5mm_1deg": float(np.mean((a_t < 5.0) & (a_r < 1.0))),
+            }
+        )
+    return rows
 
 
 def add_ratios(rows: list[dict[str, Any]]) -> None:
@@ -332,20 +356,26 @@ def cycle(
     `tracked`: the share of frames the final ICP level alone aligned); for warm, a first
     frame (the full schedule)."""
     per = dataclasses.replace(twin.perception, voxel_size=voxel)
-    out = []
-    for v in VARIANTS:
-        times: list[float] = []
-        parts: dict[str, list[float]] = {"perception": [], "icp": [], "control": []}
-        tracked: list[int] = []
-        for case in cases:
-            servo = Servo(
+    times: dict[str, list[float]] = {v: [] for v in VARIANTS}
+    parts: dict[str, dict[str, list[float]]] = {
+        v: {"perception": [], "icp": [], "control": []} for v in VARIANTS
+    }
+    tracked: dict[str, list[int]] = {v: [] for v in VARIANTS}
+    for case in cases:
+        servos = {
+            v: Servo(
                 case.reference,
                 icp=with_association(ICPConfig(variant=v), association),
                 camera=twin.camera,
                 perception=per,
                 limits=Limits(max_linear_acceleration=0, max_angular_acceleration=0),
             )
-            for k in range(repeats + 1):
+            for v in VARIANTS
+        }
+        # the variants interleaved, as `measure` does: round k times each once, rotated by k
+        for k in range(repeats + 1):
+            for v in VARIANTS[k % len(VARIANTS) :] + VARIANTS[: k % len(VARIANTS)]:
+                servo = servos[v]
                 stamp = float(k)
                 if start == "tracking":
                     # the steady state: a trusted frame at the truth, then the frame whose
@@ -363,12 +393,13 @@ def cycle(
                 el = time.perf_counter() - t0
                 if k == 0:
                     continue  # warm-up
-                times.append(el)
-                tracked.append(servo.tracked_frames - before)
-                parts["perception"].append(r.timings.get("perception", 0.0))
-                parts["icp"].append(r.timings.get("icp", 0.0))
-                parts["control"].append(r.timings.get("control", 0.0))
-        ms = 1000 * statistics.median(times)
+                times[v].append(el)
+                tracked[v].append(servo.tracked_frames - before)
+                for key in parts[v]:
+                    parts[v][key].append(r.timings.get(key, 0.0))
+    out = []
+    for v in VARIANTS:
+        ms = 1000 * statistics.median(times[v])
         out.append(
             {
                 "voxel": voxel,
@@ -376,8 +407,8 @@ def cycle(
                 "variant": v,
                 "cycle_ms": ms,
                 "hz": 1000 / ms,
-                "tracked": float(np.mean(tracked)),
-                **{f"{k}_ms": 1000 * statistics.median(x) for k, x in parts.items()},
+                "tracked": float(np.mean(tracked[v])),
+                **{f"{k}_ms": 1000 * statistics.median(x) for k, x in parts[v].items()},
             }
         )
     return out
@@ -456,7 +487,14 @@ def main() -> None:
                 methods[f"open3d {k}"] = open3d_method(k, start)
             for k in ("ICP", "PLANE_ICP", "GICP"):
                 methods[f"small_gicp {k}"] = small_gicp_method(k, start, args.threads)
-            rows = [measure(n, m, cases, args.repeats) for n, m in methods.items()]
+            # each library's methods interleaved among themselves, one library after another
+            rows = [
+                row
+                for lib in ("vinetwin", "open3d", "small_gicp")
+                for row in measure(
+                    {n: m for n, m in methods.items() if n.split()[0] == lib}, cases, args.repeats
+                )
+            ]
             add_ratios(rows)
             title = (
                 f"voxel {1000 * voxel:.0f} mm, start {start} ({STARTS[start][0] * 100:.0f} cm / "
