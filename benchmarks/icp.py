@@ -20,7 +20,7 @@ small_gicp the same epsilons, Open3D relative fitness and RMSE 1e-6; at most 40 
 level for all. Timing: per case, each library's methods are warmed up, then timed in rounds,
 each round every method once in an order rotated by one (a drift of the machine's speed lands
 on them alike); one library after another (interleaved with small_gicp, whose OpenMP threads
-spin after each call, ours ran 1.5-2.9x slower: `measure`). The servo cycles interleave the
+spin after each call, ours ran 1.5-3.4x slower: `measure`). The servo cycles interleave the
 four variants the same way.
 
 Printed per method: median time (ms), median iterations, translation and rotation error against
@@ -284,7 +284,7 @@ def measure(
     rotated by one, so that a drift of the machine's speed (up to 1.4x within an hour here)
     lands on the methods alike. A method's time on a case is the median of its rounds; its row,
     the median over the cases. Call it once per library (`main`): interleaved with small_gicp,
-    ours took 1.5-2.9x their time alone, since small_gicp's bundled libgomp keeps its threads
+    ours took 1.5-3.4x their time alone, since small_gicp's bundled libgomp keeps its threads
     spinning after each call (its default, which a user of small_gicp alone has), taking a core
     from whatever runs next; with `OMP_WAIT_POLICY=passive` the difference went away
     (docs/results/speed.md)."""
