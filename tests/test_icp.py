@@ -577,3 +577,43 @@ def test_association_defaults_per_variant() -> None:
         assert ICPConfig(variant=variant, association="tree").association_in_use == "tree"
     with pytest.raises(InputError, match="choose one of: tree, projective"):
         ICPConfig(association="nearest")
+
+
+def test_coarse_levels_hand_on_early_without_moving_the_answer(vine_views: VineViews) -> None:
+    """Symmetric's and LM's coarse levels stop once an update moves less than 1% of their reach
+    (`COARSE_TOLERANCE`): from 2 cm / 3 deg and from 5 cm / 10 deg (`coarse_to_fine`) on the
+    sample's views, the answer is the one of coarse levels run to the full tolerances, within
+    0.05 mm / 0.01 deg (the final level settles it), in fewer iterations (point-to-plane too,
+    given the setting; by default it keeps 0, as do point-to-point and LM on points); an
+    explicit value wins and a bad one is named."""
+    from vinetwin.errors import InputError
+
+    assert ICPConfig(variant="point_to_point").coarse_tolerance_in_use() == 0.0
+    assert ICPConfig(variant="point_to_plane").coarse_tolerance_in_use() == 0.0
+    assert ICPConfig(variant="lm", lm_model="points").coarse_tolerance_in_use() == 0.0
+    for variant in ("symmetric", "lm"):
+        assert ICPConfig(variant=variant).coarse_tolerance_in_use() == 0.01
+    for variant in ("point_to_plane", "symmetric", "lm"):
+        assert ICPConfig(variant=variant, coarse_tolerance=0.0).coarse_tolerance_in_use() == 0.0
+    with pytest.raises(InputError, match="coarse_tolerance"):
+        ICPConfig(coarse_tolerance=-0.1)
+    twin = vine_views.twin
+    for variant in ("point_to_plane", "symmetric", "lm"):
+        fewer = 0
+        for offset, angle, far in ((0.02, 3.0, False), (0.05, 10.0, True)):
+            for _pose, ref, cur, D in vine_views.cases(offset, angle, per_pose=1):
+                runs = []
+                for tol in (0.01, 0.0):
+                    make = ICPConfig.coarse_to_fine if far else ICPConfig
+                    cfg = make(variant=variant, coarse_tolerance=tol)
+                    r = ICP(ref, cfg, camera=twin.camera, max_depth=0.4).align(cur)
+                    runs.append(r)
+                early, full = runs
+                assert early.converged == full.converged, (early.reason, full.reason)
+                if not full.converged:
+                    continue
+                dt, dr = fr.pose_error(early.T_ref_cur, full.T_ref_cur)
+                assert dt < 5e-5 and np.degrees(dr) < 0.01, (variant, dt, np.degrees(dr))
+                assert fr.pose_error(full.T_ref_cur, D)[0] < 0.002
+                fewer += early.iterations < full.iterations
+        assert fewer > 0, variant

@@ -74,6 +74,14 @@ ASSOCIATION_DEFAULTS = {
 }  # fmt: skip
 #: Variants whose edge rejection also applies at the final level (the others: coarse levels only).
 EDGE_FINAL = frozenset({"point_to_plane", "lm"})
+#: Default `ICPConfig.coarse_tolerance` per variant; absent: 0. Symmetric and LM on the
+#: surface hand a level's answer on once it moves less than 1% of the level's reach: on four
+#: vines' views (benchmarks/icp.py's cases, 2 and 4 mm, 2 cm and 5 cm starts) they took 25-50%
+#: fewer iterations for the same share within 1 mm / 0.1 degree in all 16 cells each, since the
+#: final level settles the answer. Point-to-plane did too in 14 of 16 but lost a case of 12-15
+#: in two (2 mm from 5 cm, the sample and the dense vine), so it keeps 0; point-to-point and LM
+#: on points creep along the canes, where stopping early costs accuracy (docs/results/speed.md).
+COARSE_TOLERANCE = {"symmetric": 0.01, "lm": 0.01}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -101,10 +109,12 @@ class ICPConfig:
     accelerate: bool = True
     """Point-to-point and LM on points: while successive updates point the same way, take up to
     16 times the update, undone if the energy rises (after Besl & McKay's accelerated ICP)."""
-    coarse_tolerance: float = 0.0
+    coarse_tolerance: float | None = None
     """Levels before the final one also stop when an update moves less than this fraction of
     their reach (and turns less than that distance at a 10 cm lever arm); 0: the tolerances
-    above everywhere. (Point-to-point creeps along canes: stopping it early costs accuracy.)"""
+    above everywhere. None: the variant's default, `COARSE_TOLERANCE` (0.01 for symmetric and
+    LM on the surface; 0 for point-to-plane, and for point-to-point and LM on points, which
+    creep along canes, so that stopping them early costs accuracy)."""
     edge_reach: float | None = None
     """With the reference's camera given to ICP: pairs whose reference point lies within
     min(this, the level's reach) of the edge of the reference view are rejected (m). None: the
@@ -201,6 +211,8 @@ class ICPConfig:
             )
         if self.max_correspondence_distance <= 0 or self.max_iterations <= 0:
             raise InputError("max_correspondence_distance and max_iterations must be positive")
+        if self.coarse_tolerance is not None and not 0 <= self.coarse_tolerance < 1:
+            raise InputError(f"coarse_tolerance must lie in [0, 1), not {self.coarse_tolerance!r}")
         for level in self.levels()[:-1]:
             if len(level) != 2 or level[0] < 0 or level[1] <= 0:
                 raise InputError(
@@ -231,6 +243,12 @@ class ICPConfig:
         if self.edge_reach is not None:
             return self.edge_reach
         return EDGE_REACH.get(self._defaults_of(), 0.0)
+
+    def coarse_tolerance_in_use(self) -> float:
+        """The coarse levels' tolerance in use (a fraction of their reach)."""
+        if self.coarse_tolerance is not None:
+            return self.coarse_tolerance
+        return COARSE_TOLERANCE.get(self._defaults_of(), 0.0)
 
     def edge_at_final(self) -> bool:
         """Whether the final level rejects edge pairs too."""
@@ -481,8 +499,9 @@ class ICP:
             src, src_n = src_cache[lv.voxel]
             tol_t, tol_r = cfg.tolerance_translation, cfg.tolerance_rotation
             if lv is not self._levels[-1]:  # a coarse level only has to reach the next one's basin
-                tol_t = max(tol_t, cfg.coarse_tolerance * lv.dmax)
-                tol_r = max(tol_r, cfg.coarse_tolerance * lv.dmax / 0.1)
+                coarse = cfg.coarse_tolerance_in_use()
+                tol_t = max(tol_t, coarse * lv.dmax)
+                tol_r = max(tol_r, coarse * lv.dmax / 0.1)
             t = lv.tree
             if lv.memo_key not in memos:
                 memos[lv.memo_key] = K.new_memo(len(src))

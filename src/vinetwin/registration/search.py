@@ -76,6 +76,7 @@ class WideSearch:
                 max_correspondence_distance=3 * self.coarse_voxel,
                 min_points=10,
                 min_correspondences=10,
+                coarse_tolerance=0.0,  # the search as measured (its re-acquisitions, docs/servo.md)
             ),
             camera=camera,
             max_depth=max_depth,
@@ -87,6 +88,7 @@ class WideSearch:
                 variant=self.variant,
                 schedule=tuple(lv for lv in fine.levels()[:-1] if lv[0] == 0.0),
                 max_correspondence_distance=fine.max_correspondence_distance,
+                coarse_tolerance=0.0,
             ),
             camera=camera,
             max_depth=max_depth,
