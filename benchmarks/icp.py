@@ -45,7 +45,7 @@ import dataclasses
 import os
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -274,6 +274,12 @@ def ours_method(
 
 
 # ----------------------------------------------------------------------------- measuring
+def rotated(items: Sequence[str], k: int) -> list[str]:
+    """`items` in the order of round k of an interleaved timing: started k places on."""
+    k %= len(items)
+    return [*items[k:], *items[:k]]
+
+
 def measure(
     methods: dict[str, Callable[[Case], Callable[[], tuple[Any, int]]]],
     cases: list[Case],
@@ -298,7 +304,7 @@ def measure(
         last = {n: run() for n, run in runs.items()}  # warm-up (compilation, caches)
         ts: dict[str, list[float]] = {n: [] for n in names}
         for k in range(repeats):
-            for n in names[k % len(names) :] + names[: k % len(names)]:
+            for n in rotated(names, k):
                 t0 = time.perf_counter()
                 last[n] = runs[n]()
                 ts[n].append(time.perf_counter() - t0)
@@ -374,7 +380,7 @@ def cycle(
         }
         # the variants interleaved, as `measure` does: round k times each once, rotated by k
         for k in range(repeats + 1):
-            for v in VARIANTS[k % len(VARIANTS) :] + VARIANTS[: k % len(VARIANTS)]:
+            for v in rotated(VARIANTS, k):
                 servo = servos[v]
                 stamp = float(k)
                 if start == "tracking":
@@ -490,7 +496,7 @@ def main() -> None:
             # each library's methods interleaved among themselves, one library after another
             rows = [
                 row
-                for lib in ("vinetwin", "open3d", "small_gicp")
+                for lib in dict.fromkeys(n.split()[0] for n in methods)
                 for row in measure(
                     {n: m for n, m in methods.items() if n.split()[0] == lib}, cases, args.repeats
                 )

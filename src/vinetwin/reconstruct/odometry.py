@@ -39,7 +39,7 @@ def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None)
         variant="point_to_plane",
         schedule=((0.0, 0.05), (0.0, 0.015)),
         max_correspondence_distance=0.005,
-        coarse_tolerance=0.0,  # as measured (docs/reconstruct.md)
+        coarse_tolerance=0.0,  # measured without the early hand-on (docs/reconstruct.md)
     )
     cam = capture.camera
     clouds = [perceive(f.depth(capture.depth_unit), cam, per) for f in capture.frames]

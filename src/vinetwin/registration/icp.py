@@ -492,6 +492,7 @@ class ICP:
         src_cache: dict[float, tuple[NDF, NDF]] = {}
         memos: dict[tuple[int, float], Any] = {}  # the tree's answers, by `_Level.memo_key`
         cur_n = current.normals if need_n else None
+        coarse = cfg.coarse_tolerance_in_use()
         for lv in self._levels:
             if lv.voxel not in src_cache:
                 s, sn = _downsample(current.points, cur_n, lv.voxel)
@@ -499,7 +500,6 @@ class ICP:
             src, src_n = src_cache[lv.voxel]
             tol_t, tol_r = cfg.tolerance_translation, cfg.tolerance_rotation
             if lv is not self._levels[-1]:  # a coarse level only has to reach the next one's basin
-                coarse = cfg.coarse_tolerance_in_use()
                 tol_t = max(tol_t, coarse * lv.dmax)
                 tol_r = max(tol_r, coarse * lv.dmax / 0.1)
             t = lv.tree
