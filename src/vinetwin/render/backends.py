@@ -14,6 +14,7 @@ number of views: see `BATCH_BACKEND`, `SINGLE_BACKEND`, `AUTO_MIN_VIEWS`.
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import logging
 import os
@@ -62,6 +63,15 @@ cane sees 8-19% of it. The images are the same (`tests/test_render.py`); the tim
 falls with the share culled (`benchmarks/render.py`)."""
 FRUSTUM_MARGIN_PX = 2.0
 """Pieces within this many pixels outside the image are still drawn."""
+MUJOCO_FLUSH_FACES = 4096
+"""Where the MuJoCo backend draws the vine from its own vertex and index buffers (`_VineBuffers`,
+in the state `mjr_render` leaves), a `glFlush` follows each run of about this many faces: Mesa's
+llvmpipe transforms and bins triangles on the calling thread and rasterises on its own threads
+only when the commands are flushed, so MuJoCo's draw (one flush, at the read-back) leaves the
+second core idle while the first transforms. Flushed piece by piece, the second core rasterises
+what is drawn while the first transforms the next piece: the same image, the view 11-23%
+faster (/tmp A/B on views around the poses of the sample and the dense vine, the two draws
+interleaved; `docs/results/speed.md`)."""
 
 log = logging.getLogger(__name__)
 
@@ -294,6 +304,13 @@ class MujocoBackend:
             self._release()  # not current in this thread: any thread may take it (one at a time)
         self._fused = self._fused_readback()
         self._buf = np.empty((camera.height, camera.width), np.float32)
+        self._vine: _VineBuffers | None = None
+        """The vine in our own OpenGL buffers, drawn flushed piece by piece (with the fused
+        read-back only); None: MuJoCo draws its mesh geoms."""
+        if self._fused is not None:
+            self._vine = _VineBuffers.create(self.renderer, V, F, pieces)
+            if self._release is not None:
+                self._release()
 
     def _fused_readback(self) -> tuple[float, float] | None:
         """The reverse-Z coefficients `mujoco.Renderer.render` converts the depth buffer with,
@@ -334,7 +351,9 @@ class MujocoBackend:
 
     def _render(self, T: Any) -> DepthImage:
         visible = frustum_hits(self._corners, T, self.camera, FRUSTUM_MARGIN_PX)
-        self.model.geom_rgba[self._geoms, 3] = visible  # alpha 0: left out of the scene
+        own = self._vine is not None and self._fused is not None
+        # alpha 0: left out of MuJoCo's scene (all of the vine where we draw it ourselves)
+        self.model.geom_rgba[self._geoms, 3] = 0.0 if own else visible
         self.drawn = int(np.count_nonzero(visible))
         pos, quat = cv.mujoco_camera_pos_quat(T)
         self.model.cam_pos[self._cam_id] = pos
@@ -350,7 +369,9 @@ class MujocoBackend:
         flags = r._scene.flags
         flags[mj.mjtRndFlag.mjRND_SEGMENT] = flags[mj.mjtRndFlag.mjRND_IDCOLOR] = True
         r._gl_context.make_current()
-        mj.mjr_render(r._rect, r._scene, r._mjr_context)
+        mj.mjr_render(r._rect, r._scene, r._mjr_context)  # cleared, the camera's matrices set
+        if own and self._vine is not None:
+            self._vine.draw(visible)
         mj.mjr_readPixels(None, self._buf, r._rect, r._mjr_context)
         out = np.empty_like(self._buf)
         args = (self._buf, *self._fused, 0.999 * self._far, out)
@@ -363,9 +384,84 @@ class MujocoBackend:
             if self._release is None and threading.get_ident() != self._thread:
                 log.debug("MuJoCo renderer left to the process's end: closed from another thread")
                 return
+            if self._vine is not None:
+                self.renderer._gl_context.make_current()
+                self._vine.delete()
+                self._vine = None
             self.renderer.close()
             if self._release is not None:
                 self._release()
+
+
+class _VineBuffers:
+    """The vine's vertices (vine frame, float32) and its faces, piece after piece, in a vertex and
+    an index buffer of a MuJoCo renderer's OpenGL context (PyOpenGL on MuJoCo's current context).
+    `draw` draws the pieces in view, depth only, in the state MuJoCo's `mjr_render` leaves: the
+    offscreen framebuffer cleared, the camera's projection and view matrices, its reverse-Z
+    depth test, back faces culled. The image is MuJoCo's own draw of the pieces, up to the
+    float32 rounding of vertices MuJoCo re-centres per piece (`tests/test_render.py`)."""
+
+    def __init__(self, gl: Any, buffers: Any, starts: npt.NDArray[np.int64]) -> None:
+        self._gl = gl
+        self._buffers = buffers
+        self._starts = starts  # piece k's faces: starts[k]..starts[k + 1] in the index buffer
+
+    @classmethod
+    def create(
+        cls,
+        renderer: Any,
+        vertices: npt.NDArray[np.float32],
+        faces: npt.NDArray[np.uint32],
+        pieces: list[npt.NDArray[np.int64]],
+    ) -> _VineBuffers | None:
+        """The buffers in `renderer`'s context (made current, left current), or None where
+        PyOpenGL cannot make them there (MuJoCo then draws its geoms: the same image)."""
+        try:
+            from OpenGL import GL
+
+            renderer._gl_context.make_current()
+            idx = np.ascontiguousarray(faces[np.concatenate(pieces)], dtype=np.uint32)
+            starts = np.concatenate([[0], np.cumsum([len(p) for p in pieces])]).astype(np.int64)
+            V = np.ascontiguousarray(vertices, dtype=np.float32)
+            buffers = GL.glGenBuffers(2)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, buffers[0])
+            GL.glBufferData(GL.GL_ARRAY_BUFFER, V.nbytes, V, GL.GL_STATIC_DRAW)
+            GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, buffers[1])
+            GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, idx.nbytes, idx, GL.GL_STATIC_DRAW)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
+            GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, 0)
+        except Exception as exc:  # no PyOpenGL, or one bound to another platform
+            log.debug("MuJoCo draws the vine's geoms: cannot make our own buffers (%s)", exc)
+            return None
+        return cls(GL, buffers, starts)
+
+    def draw(self, visible: npt.NDArray[np.float64]) -> None:
+        """Draws the pieces with `visible` > 0, a flush after each `MUJOCO_FLUSH_FACES` faces."""
+        GL, starts = self._gl, self._starts
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._buffers[0])
+        GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, self._buffers[1])
+        GL.glEnableClientState(GL.GL_VERTEX_ARRAY)
+        GL.glVertexPointer(3, GL.GL_FLOAT, 0, None)
+        GL.glColorMask(GL.GL_FALSE, GL.GL_FALSE, GL.GL_FALSE, GL.GL_FALSE)
+        try:
+            pending = 0
+            for k in np.flatnonzero(visible):
+                n = int(starts[k + 1] - starts[k])
+                offset = ctypes.c_void_p(int(starts[k]) * 12)  # 3 uint32 indices per face
+                GL.glDrawElements(GL.GL_TRIANGLES, 3 * n, GL.GL_UNSIGNED_INT, offset)
+                pending += n
+                if pending >= MUJOCO_FLUSH_FACES:
+                    GL.glFlush()
+                    pending = 0
+        finally:
+            GL.glColorMask(GL.GL_TRUE, GL.GL_TRUE, GL.GL_TRUE, GL.GL_TRUE)
+            GL.glDisableClientState(GL.GL_VERTEX_ARRAY)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
+            GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, 0)
+
+    def delete(self) -> None:
+        """Frees the buffers (their context current)."""
+        self._gl.glDeleteBuffers(2, self._buffers)
 
 
 def _mujoco_gl() -> str:
