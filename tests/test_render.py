@@ -478,32 +478,33 @@ def test_frustum_test_keeps_what_shows_and_drops_what_cannot() -> None:
 def test_mujoco_culling_fused_readback_and_own_draw_leave_the_image_unchanged(
     sample: tuple[Twin, trimesh.Trimesh], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The MuJoCo scene draws only the vine pieces in the frustum and converts the depth buffer
-    in one compiled pass: with MuJoCo drawing its geoms, the images are those of drawing every
-    piece through `mujoco.Renderer.render`, to the bit, on views around the sample's poses (and
-    the views do leave pieces out). Drawn from our own buffers, flushed piece by piece (the
-    default), the images are the same within 0.1 mm but for at most 3 pixels a view where a
-    triangle edge's tie falls the other way (float32 vertices MuJoCo re-centres per piece)."""
+    """The MuJoCo backend draws only the vine pieces in the frustum and converts the depth
+    buffer in one compiled pass. With MuJoCo drawing the vine's geoms (`own_draw=False`), the
+    images are those of drawing every piece through `mujoco.Renderer.render`, to the bit, on
+    views around the sample's poses (and the views do leave pieces out). Drawn from our own
+    buffers, flushed piece by piece (the default, the vine then out of MuJoCo's model), the
+    images are the same within 0.1 mm but for at most 3 pixels a view where a triangle edge's
+    tie falls the other way (float32 vertices that MuJoCo re-centres per piece)."""
     from vinetwin.render import backends
 
     twin, mesh = sample
-    mj = _backend_or_skip("mujoco", mesh.vertices, mesh.faces, twin.camera)
-    assert mj._fused is not None, "this MuJoCo's renderer should take the fused readback"
-    assert mj._vine is not None, "this MuJoCo's renderer should draw the vine from our buffers"
+    own = _backend_or_skip("mujoco", mesh.vertices, mesh.faces, twin.camera)
+    assert own._fused is not None, "this MuJoCo's renderer should take the fused readback"
+    assert own._vine is not None, "this MuJoCo's renderer should draw the vine from our buffers"
+    assert own.model.ngeom == 0 and own.model.nmesh == 0  # the vine is not compiled into MuJoCo
+    mj = backends.MujocoBackend(mesh.vertices, mesh.faces, twin.camera, own_draw=False)
+    assert mj._vine is None and len(mj._geoms) == mj.pieces >= 8
     rng = np.random.default_rng(0)
     poses = [p.T_vine_camera @ fr.random_pose(rng, 0.02, 0.1) for p in twin.poses for _ in range(2)]
-    own, culled, drawn = [], [], []
-    vine = mj._vine
+    ours, culled, drawn = [], [], []
     for T in poses:
-        own.append(mj.render(T))
-        mj._vine = None
+        ours.append(own.render(T))
         culled.append(mj.render(T))
-        mj._vine = vine
         drawn.append(mj.drawn)
-    fused = mj._fused
+        assert own.drawn == mj.drawn
     mj._fused = None
     monkeypatch.setattr(backends, "frustum_hits", lambda c, *a: np.ones(len(c)))
-    for T, a, c in zip(poses, culled, own, strict=True):
+    for T, a, c in zip(poses, culled, ours, strict=True):
         b = mj.render(T)
         assert (b > 0).sum() > 10_000
         np.testing.assert_array_equal(a, b)
@@ -511,9 +512,31 @@ def test_mujoco_culling_fused_readback_and_own_draw_leave_the_image_unchanged(
         off = np.abs(c - b)[both] > 1e-4
         assert off.sum() <= 3 and ((b > 0) != (c > 0)).sum() <= 3
         assert np.abs(c - b)[both][~off].max() < 1e-4
-    mj._fused = fused
+    own.close()
     mj.close()
-    assert max(drawn) < len(mj._geoms) and len(mj._geoms) >= 8
+    assert max(drawn) < mj.pieces
+
+
+def test_mujoco_draws_the_vine_itself_where_our_buffers_cannot_be_made(
+    sample: tuple[Twin, trimesh.Trimesh], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Where PyOpenGL cannot make the vine's buffers in MuJoCo's context, the backend compiles the
+    vine into MuJoCo's model and renders what `own_draw=False` renders, to the bit."""
+    from vinetwin.render import backends
+
+    twin, mesh = sample
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    _backend_or_skip("mujoco", tri, np.array([[0, 1, 2]]), twin.camera).close()
+    monkeypatch.setattr(backends._VineBuffers, "create", classmethod(lambda cls, *a: None))
+    fallback = backends.MujocoBackend(mesh.vertices, mesh.faces, twin.camera)
+    assert fallback._vine is None and len(fallback._geoms) == fallback.pieces
+    mj = backends.MujocoBackend(mesh.vertices, mesh.faces, twin.camera, own_draw=False)
+    for pose in twin.poses[:2]:
+        np.testing.assert_array_equal(
+            fallback.render(pose.T_vine_camera), mj.render(pose.T_vine_camera)
+        )
+    fallback.close()
+    mj.close()
 
 
 def test_stl_bytes_round_trip() -> None:
