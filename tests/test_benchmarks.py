@@ -55,7 +55,7 @@ def test_icp_benchmark_quick(tmp_path: Path) -> None:
 
 def test_render_benchmark_quick(tmp_path: Path) -> None:
     """Per reference for each backend and resolution, and the export with the backend `auto`
-    chose for that many references (20 in quick mode: open3d)."""
+    chose for that many references (20 in quick mode)."""
     from vinetwin.render.backends import resolve_backend
 
     out = tmp_path / "render.json"

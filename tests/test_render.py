@@ -280,7 +280,7 @@ def test_auto_backend_by_batch_size_and_where_it_can_start() -> None:
     from vinetwin.render.backends import AUTO_MIN_VIEWS, BATCH_BACKEND, SINGLE_BACKEND
 
     assert resolve_backend("pyrender", 10_000) == "pyrender"
-    assert resolve_backend(None) == resolve_backend("auto", AUTO_MIN_VIEWS - 1) == SINGLE_BACKEND
+    assert resolve_backend("auto", AUTO_MIN_VIEWS - 1) == SINGLE_BACKEND
     with pytest.raises(InputError, match="choose auto or one of"):
         resolve_backend("vtk")
     code = (
@@ -316,7 +316,7 @@ def test_export_of_a_batch_uses_the_batch_backend(
     for pid in ids:
         info = json.loads((twin_copy.references_dir / f"{pid}.json").read_text())
         assert info["backend"] == backends.BATCH_BACKEND and info["points"] > 100
-    # one pose is not a batch: open3d, a changed input, rendered again
+    # one pose is under this batch size: open3d, a changed input, rendered again
     assert export_references(twin_copy, ids[:1], workers=1).count("rendered") == 1
     info = json.loads((twin_copy.references_dir / f"{ids[0]}.json").read_text())
     assert info["backend"] == backends.SINGLE_BACKEND

@@ -121,7 +121,7 @@ class Export:
     poses: tuple[str, ...] = ()
     """Pose ids to export (default: all; one twin only)."""
     backend: BackendChoice = "auto"
-    """Depth renderer; auto: mujoco for large batches where it starts, else open3d (docs/render.md)."""
+    """Depth renderer; auto: mujoco where it can start, else open3d saying why (docs/render.md)."""
     workers: int = 0
     """Processes; 0 chooses (1 for open3d, one per core for pyrender, mujoco; Ray: its CPUs)."""
     cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)

@@ -36,22 +36,25 @@ BACKENDS: tuple[BackendName, ...] = ("open3d", "pyrender", "mujoco")
 DepthImage = npt.NDArray[np.float32]
 
 BATCH_BACKEND: BackendName = "mujoco"
-"""What `auto` (the default of export and preview) renders a batch of `AUTO_MIN_VIEWS` views or
-more with: the fastest per view of the three (`benchmarks/render.py`: 6.5 ms against Open3D's
-29.4 on the sample at 848x480), within 1 mm of Open3D's exact ray casting on every pixel both
-see (`tests/test_render.py`). Where it cannot start (no EGL), `auto` takes `SINGLE_BACKEND`."""
+"""What `auto` (the default of export and preview) renders `AUTO_MIN_VIEWS` views or more with:
+the fastest per view of the three (`benchmarks/render.py`: 4.5 ms against Open3D's 26.2 on the
+sample at 848x480), within 1 mm of Open3D's exact ray casting on every pixel both see
+(`tests/test_render.py`). Where it cannot start (no EGL), `auto` takes `SINGLE_BACKEND`."""
 SINGLE_BACKEND: BackendName = "open3d"
-"""What `auto` renders fewer views with, and where `BATCH_BACKEND` cannot start; code that renders
-a few views of a mesh it has just loaded (a reference rendered on the fly) uses it too: Open3D builds its scene in 0.04-0.4 s where MuJoCo compiles the same vine in
-0.5-0.8 s (the sample) or 4-6 s (900k triangles), and needs no OpenGL. A simulation's scene,
-which renders a view per camera frame, and the web app's previews take the batch backend
-(`scene_backend`)."""
-AUTO_MIN_VIEWS = 100
-"""The batch size from which `auto` takes `BATCH_BACKEND`: where its faster views repay its
-slower start. Measured exports (`render.export`, its default workers; re-measured with the
-culled MuJoCo scene at 308e770): the sample, 50 views 2.1 s with open3d against 3.0 s with
-mujoco, 100 views 4.4 against 3.6 s; the dense generated vine (897k triangles) 5.5 against 8.1 s
-and 10.0 against 8.8 s."""
+"""What `auto` renders with where `BATCH_BACKEND` cannot start (or for fewer than
+`AUTO_MIN_VIEWS` views). Code that renders a few views of a mesh it has just loaded without
+OpenGL (a reference rendered on the fly by the servo or the field's rebuilt twin) uses it too:
+it needs no OpenGL and its scene builds in 0.04-0.4 s. A simulation's scene, which renders a
+view per camera frame, and the web app's previews take the batch backend (`scene_backend`)."""
+AUTO_MIN_VIEWS = 1
+"""The batch size from which `auto` takes `BATCH_BACKEND`. It was 100 while MuJoCo compiled the
+vine into its model (0.5-0.8 s for the sample, 4-6 s for 900k triangles); with the vine drawn
+from our own buffers and a model of the camera alone, MuJoCo starts in 0.07-0.44 s and exports
+(`render.export` in a fresh process, its default workers, two runs each, 6924020) took, against
+Open3D: the sample 1 view 1.27-1.35 s against 2.21-2.49, 3 views 2.13-2.18 against 2.31-2.37,
+10 views 1.94-2.12 against 2.78-2.99, 50 views 2.18-2.43 against 3.95-4.20; the dense vine 1
+view 1.44-2.07 against 2.82-3.35 and 4 views 2.34-2.50 against 3.21-3.36; gdc_can1 (987k
+triangles) 1.64-1.97 against 3.49-3.61 and 2.23-2.53 against 3.66-3.99 s."""
 
 MUJOCO_STL_FACES = 200_000
 """The most faces MuJoCo's STL reader takes in one file."""
