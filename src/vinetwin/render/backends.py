@@ -37,7 +37,7 @@ DepthImage = npt.NDArray[np.float32]
 
 BATCH_BACKEND: BackendName = "mujoco"
 """What `auto` (the default of export and preview) renders `AUTO_MIN_VIEWS` views or more with:
-the fastest per view of the three (`benchmarks/render.py`: 4.5 ms against Open3D's 26.2 on the
+the fastest per view of the three (`benchmarks/render.py`: 3.7 ms against Open3D's 31.3 on the
 sample at 848x480), within 1 mm of Open3D's exact ray casting on every pixel both see
 (`tests/test_render.py`). Where it cannot start (no EGL), `auto` takes `SINGLE_BACKEND`."""
 SINGLE_BACKEND: BackendName = "open3d"
