@@ -269,6 +269,8 @@ class MujocoBackend:
     ) -> None:
         if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
             os.environ["MUJOCO_GL"] = "egl"
+        # PyOpenGL (MuJoCo's EGL, our buffers) says at INFO that its optional C module is missing
+        logging.getLogger("OpenGL.acceleratesupport").setLevel(logging.WARNING)
         try:
             mujoco = _lazy.mujoco()
         except Exception as exc:
