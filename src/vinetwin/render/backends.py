@@ -5,7 +5,7 @@ a triangle mesh (vine frame) seen by a `CameraModel` at `T_vine_camera`:
 
 - `open3d`: Open3D ray casting (`RaycastingScene`): no OpenGL needed, exact;
 - `pyrender`: OpenGL rasterisation, headless through EGL (or OSMesa with PYOPENGL_PLATFORM=osmesa);
-- `mujoco`: MuJoCo's offscreen renderer (EGL), the vine as a mesh asset.
+- `mujoco`: MuJoCo's offscreen renderer (EGL), the vine drawn from our own buffers in its context.
 
 A backend that cannot start raises `BackendUnavailable` with the reason; `get_backend` never
 falls back to another backend. Where a user names none ("auto"), `resolve_backend` picks by the
