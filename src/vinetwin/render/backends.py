@@ -59,11 +59,12 @@ triangles) 1.64-1.97 against 3.49-3.61 and 2.23-2.53 against 3.66-3.99 s."""
 MUJOCO_STL_FACES = 200_000
 """The most faces MuJoCo's STL reader takes in one file."""
 MUJOCO_CHUNK_FACES = 4096
-"""The MuJoCo scene holds the vine as spatially compact pieces of about this many faces, and
-each view draws only the pieces whose bounding box meets the camera's frustum: OpenGL (llvmpipe
-on a CPU) otherwise transforms every vertex of the vine per view, though a D405 15 cm from a
-cane sees 8-19% of it. The images are the same (`tests/test_render.py`); the time per view
-falls with the share culled (`benchmarks/render.py`)."""
+"""The MuJoCo backend holds the vine as spatially compact pieces of at most this many faces (in
+its own buffers, or as MuJoCo geoms), and each view draws only the pieces whose bounding box
+meets the camera's frustum: OpenGL (llvmpipe on a CPU) otherwise transforms every vertex of the
+vine per view, though a D405 15 cm from a cane sees 8-19% of it. The images are the same
+(`tests/test_render.py`); the time per view falls with the share culled
+(`benchmarks/render.py`)."""
 FRUSTUM_MARGIN_PX = 2.0
 """Pieces within this many pixels outside the image are still drawn."""
 MUJOCO_FLUSH_FACES = 4096
@@ -72,9 +73,9 @@ in the state `mjr_render` leaves), a `glFlush` follows each run of about this ma
 llvmpipe transforms and bins triangles on the calling thread and rasterises on its own threads
 only when the commands are flushed, so MuJoCo's draw (one flush, at the read-back) leaves the
 second core idle while the first transforms. Flushed piece by piece, the second core rasterises
-what is drawn while the first transforms the next piece: the same image, the view 11-23%
-faster (/tmp A/B on views around the poses of the sample and the dense vine, the two draws
-interleaved; `docs/results/speed.md`)."""
+what is drawn while the first transforms the next piece: the same image (within 0.1 mm but for
+a few pixels), the view in 0.73-0.91x the time (/tmp A/B on views around the poses of four
+vines, the two draws interleaved; `docs/results/speed.md`)."""
 
 log = logging.getLogger(__name__)
 
