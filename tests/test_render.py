@@ -524,9 +524,9 @@ def test_mujoco_draws_the_vine_itself_where_our_buffers_cannot_be_made(
     vine into MuJoCo's model and renders what `own_draw=False` renders, to the bit."""
     from vinetwin.render import backends
 
+    if backends._cannot_start("mujoco"):
+        pytest.skip(backends._cannot_start("mujoco"))
     twin, mesh = sample
-    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
-    _backend_or_skip("mujoco", tri, np.array([[0, 1, 2]]), twin.camera).close()
     monkeypatch.setattr(backends._VineBuffers, "create", classmethod(lambda cls, *a: None))
     fallback = backends.MujocoBackend(mesh.vertices, mesh.faces, twin.camera)
     assert fallback._vine is None and len(fallback._geoms) == fallback.pieces

@@ -280,16 +280,7 @@ class MujocoBackend:
         self.camera = camera
         self._mujoco = mujoco
         pieces = mesh_pieces(V, F, MUJOCO_CHUNK_FACES)
-        # each piece's bounding box (8 corners, vine frame), for the frustum test; its
-        # vertices gathered axis by axis (`take`), reduced along rows (0.26 -> 0.03 s, dense vine)
-        Vt = np.ascontiguousarray(V.T)
-        lo = np.empty((len(pieces), 3), np.float32)
-        hi = np.empty((len(pieces), 3), np.float32)
-        for k, idx in enumerate(pieces):
-            corners = np.take(Vt, F[idx].ravel(), axis=1)
-            lo[k], hi[k] = corners.min(axis=1), corners.max(axis=1)
-        pick = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)], dtype=bool)
-        self._corners = np.where(pick[None], hi[:, None], lo[:, None]).astype(np.float64)
+        self._corners = piece_corners(V, F, pieces)  # for the frustum test
         self.pieces = len(pieces)
         """The vine's pieces (`MUJOCO_CHUNK_FACES` faces at most)."""
         self.drawn = len(pieces)
@@ -563,6 +554,24 @@ def mesh_pieces(
         order = np.argpartition(c[axis], half)
         todo += [idx[order[:half]], idx[order[half:]]]
     return out
+
+
+def piece_corners(
+    vertices: npt.NDArray[np.float32],
+    faces: npt.NDArray[np.uint32],
+    pieces: list[npt.NDArray[np.int64]],
+) -> npt.NDArray[np.float64]:
+    """The 8 corners of each piece's axis-aligned bounding box, (n, 8, 3) in the vertices' frame
+    (what `frustum_hits` tests). Each piece's vertices are gathered axis by axis (`take`) and
+    reduced along rows: 0.03 s for the dense vine's 256 pieces, against 0.26 s for (n, 3) copies."""
+    rows = np.ascontiguousarray(vertices.T)
+    lo = np.empty((len(pieces), 3), np.float32)
+    hi = np.empty((len(pieces), 3), np.float32)
+    for k, idx in enumerate(pieces):
+        pts = np.take(rows, faces[idx].ravel(), axis=1)
+        lo[k], hi[k] = pts.min(axis=1), pts.max(axis=1)
+    pick = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)], dtype=bool)
+    return np.where(pick[None], hi[:, None], lo[:, None]).astype(np.float64)
 
 
 def frustum_hits(
