@@ -51,6 +51,10 @@ def test_icp_benchmark_quick(tmp_path: Path) -> None:
         "symmetric",
     }
     assert "servo cycle" in proc.stdout
+    # the figures say where they were measured: timings of two machines do not compare
+    m = data["machine"]
+    assert m["cores"] >= 1 and m["cpu"] and m["python"].startswith("3.")
+    assert m["measured"].startswith("20") and isinstance(m["commit"], str)
 
 
 def test_render_benchmark_quick(tmp_path: Path) -> None:
