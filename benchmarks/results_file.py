@@ -31,16 +31,17 @@ def _cpu() -> tuple[str, str]:
 
 
 def _commit() -> str:
-    """The checkout's commit, with "+changes" where tracked files other than the committed
-    results differ from it ("" outside git)."""
+    """The checkout's commit, with "+changes" where the code (`src/`, `benchmarks/` but for
+    its results, `pyproject.toml`) differs from it ("" outside git)."""
     try:
         head = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
             check=True, timeout=10,
         ).stdout.strip()  # fmt: skip
         dirty = subprocess.run(  # the results a benchmark run rewrites are not the code
-            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
-             ":!benchmarks/results"], cwd=ROOT, capture_output=True, text=True, timeout=10,
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", "src", "benchmarks",
+             "pyproject.toml", ":!benchmarks/results"], cwd=ROOT, capture_output=True, text=True,
+            timeout=10,
         ).stdout.strip()  # fmt: skip
     except (OSError, subprocess.SubprocessError):
         return ""
