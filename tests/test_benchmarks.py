@@ -139,7 +139,10 @@ def test_sim_benchmark_quick(tmp_path: Path) -> None:
     and the rest."""
     out = tmp_path / "sim.json"
     proc, data = _quick("sim.py", out)
-    assert [r["backend"] for r in data["rows"]] == ["open3d", "mujoco"]
+    names = [r["backend"] for r in data["rows"]]
+    # MuJoCo is left out, saying why, where it cannot start; the others start anywhere
+    assert names in (["open3d", "mujoco", "raster"], ["open3d", "raster"]), names
+    assert "mujoco" in names or "mujoco left out" in proc.stdout
     for r in data["rows"]:
         assert r["frames"] > 0 and r["x_real_time"] > 0 and r["render_ms"] > 0
         parts = r["render_ms"] + r["sensor_ms"] + r["servo_step_ms"] + r["rest_ms"]

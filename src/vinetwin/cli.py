@@ -24,7 +24,7 @@ log = logging.getLogger("vinetwin")
 
 Positional = tyro.conf.Positional
 Nested = tyro.conf.OmitArgPrefixes
-BackendChoice = Literal["auto", "open3d", "pyrender", "mujoco"]
+BackendChoice = Literal["auto", "open3d", "pyrender", "mujoco", "raster"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -121,9 +121,11 @@ class Export:
     poses: tuple[str, ...] = ()
     """Pose ids to export (default: all; one twin only)."""
     backend: BackendChoice = "auto"
-    """Depth renderer; auto: mujoco where it can start, else open3d saying why (docs/render.md)."""
+    """Depth renderer; auto: raster (vinetwin's compiled rasteriser, no OpenGL needed), else open3d
+    saying why (docs/render.md)."""
     workers: int = 0
-    """Processes; 0 chooses (1 for open3d, one per core for pyrender, mujoco; Ray: its CPUs)."""
+    """Processes; 0 chooses (1 for open3d, one per core for raster, mujoco, pyrender; Ray: its
+    CPUs)."""
     cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
     seed: int = 0
     """Base seed of the D405 noise; each pose derives its own."""
