@@ -84,7 +84,7 @@ class AuthoringSession:
     def renderer(self) -> Any:
         """The renderer of this twin's mesh (built once): the simulation's, `scene_backend`,
         which may be used from any thread (the app's clicks and validations run in server
-        threads): MuJoCo where it runs with EGL, else Open3D ray casting. It renders the
+        threads): vinetwin's raster backend (`render.backends.BATCH_BACKEND`). It renders the
         previews and the validations' scene."""
         from vinetwin.render.backends import scene_backend
 
