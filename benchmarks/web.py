@@ -104,6 +104,10 @@ def run(
             page.goto(f"http://127.0.0.1:{port}")
             page.wait_for_selector("canvas", timeout=60_000)
             page.wait_for_timeout(5000)  # the scene and the mesh arrive
+            # and the server's warm-up is over (a fresh install compiles its kernels first: a
+            # click during it waits for it, and its late answer was taken for the next click's)
+            if not app.wait_ready():
+                raise SystemExit("the web app's warm-up did not finish in 120 s")
             renderer = str(page.evaluate(RENDERER_JS))
             box = page.locator("canvas").first.bounding_box()
             assert box is not None

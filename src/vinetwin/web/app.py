@@ -110,6 +110,12 @@ class App:
         self._warming = threading.Thread(target=self._warm_up, daemon=True, name="warm-up")
         self._warming.start()
 
+    def wait_ready(self, timeout: float = 120.0) -> bool:
+        """Waits for the start's warm-up (the renderer and picking scene built, the compiled
+        kernels loaded or compiled: seconds on a fresh install); True once it is done."""
+        self._warming.join(timeout=timeout)
+        return not self._warming.is_alive()
+
     def close(self) -> None:
         """Stops the server, once the renderer's warm-up (in its own thread) is done, and
         releases the renderer."""
