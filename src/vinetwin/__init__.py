@@ -20,6 +20,13 @@ import os
 GOMP_SPINCOUNT = "10000"
 os.environ.setdefault("GOMP_SPINCOUNT", GOMP_SPINCOUNT)
 
+#: numba's threading layers in the order tried: OpenMP (libgomp, shared with Open3D), then the
+#: workqueue, which needs nothing installed. TBB comes last: where one is installed it is often
+#: older than numba accepts, and numba then warns on every first parallel call (the web demo's
+#: log showed "The TBB threading layer requires TBB version 2021 update 6 or later").
+NUMBA_THREADING_LAYERS = ("omp", "workqueue", "tbb")
+os.environ.setdefault("NUMBA_THREADING_LAYER_PRIORITY", " ".join(NUMBA_THREADING_LAYERS))
+
 from vinetwin.errors import VinetwinError  # noqa: E402
 
 __version__ = "0.1.0"

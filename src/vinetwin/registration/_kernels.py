@@ -25,9 +25,10 @@ import numba as nb
 import numpy as np
 from numba.core import config as _nb_config
 
-# numba's OpenMP layer shares libgomp with Open3D; the workqueue layer needs nothing installed
-# (TBB, when present, is often too old for numba and only warns)
-_nb_config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]  # type: ignore[attr-defined]
+from vinetwin import NUMBA_THREADING_LAYERS
+
+# also where numba was imported before vinetwin (its environment variable read then)
+_nb_config.THREADING_LAYER_PRIORITY = list(NUMBA_THREADING_LAYERS)  # type: ignore[attr-defined]
 
 VARIANT_CODES = {"point_to_point": 0, "lm": 1, "point_to_plane": 2, "symmetric": 3}
 CONVERGED, ITERATION_LIMIT, FEW_PAIRS, SINGULAR = 0, 1, 2, 3
