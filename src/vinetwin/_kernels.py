@@ -1145,16 +1145,14 @@ def _raster_clipped(
     c: int,
     R: np.ndarray,
     t: np.ndarray,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    znear: float,
+    k: np.ndarray,
     two_sided: bool,
     zbuf: np.ndarray,
 ) -> None:
-    """A triangle crossing the plane z = znear (camera frame): its part in front, clipped
-    (Sutherland-Hodgman against the one plane: 3 or 4 corners), drawn as a fan."""
+    """A triangle crossing the near plane (camera frame): its part in front, clipped
+    (Sutherland-Hodgman against the one plane: 3 or 4 corners), drawn as a fan. R, t, k: as for
+    `raster_pieces`."""
+    fx, fy, cx, cy, znear = k[0], k[1], k[2], k[3], k[4]
     cam = np.empty((3, 3))
     idx = (a, b, c)
     for j in range(3):
@@ -1202,18 +1200,15 @@ def raster_pieces(
     fstart: np.ndarray,
     R: np.ndarray,
     t: np.ndarray,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    znear: float,
+    k: np.ndarray,
     two_sided: bool,
     zbuf: np.ndarray,
     P: np.ndarray,
 ) -> None:
     """Z-buffer rendering of the mesh pieces `pieces` (ids) into `zbuf` (H, W, float32, +inf
-    where empty), the camera at rotation `R`, position `t` in the mesh's frame (OpenCV axes).
-    Piece k owns vertices `V[vstart[k]:vstart[k+1]]` and faces `F[fstart[k]:fstart[k+1]]`
+    where empty), the camera at rotation `R`, position `t` in the mesh's frame (OpenCV axes),
+    `k` = (fx, fy, cx, cy, znear): the intrinsics and the near plane.
+    Piece p owns vertices `V[vstart[p]:vstart[p+1]]` and faces `F[fstart[p]:fstart[p+1]]`
     (indices into V, within its own vertices), so each vertex is projected once per view into
     the scratch `P` (n, 4: u, v, 1/z, z). Triangles wholly behind `znear` are dropped, those
     crossing it clipped."""
@@ -1221,8 +1216,9 @@ def raster_pieces(
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
     r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
     tx, ty, tz = t[0], t[1], t[2]
-    for k in pieces:
-        for i in range(vstart[k], vstart[k + 1]):
+    fx, fy, cx, cy, znear = k[0], k[1], k[2], k[3], k[4]
+    for piece in pieces:
+        for i in range(vstart[piece], vstart[piece + 1]):
             dx, dy, dz = V[i, 0] - tx, V[i, 1] - ty, V[i, 2] - tz
             x = r00 * dx + r10 * dy + r20 * dz  # R^T (v - t)
             y = r01 * dx + r11 * dy + r21 * dz
@@ -1233,7 +1229,7 @@ def raster_pieces(
                 P[i, 0] = fx * x * w + cx
                 P[i, 1] = fy * y * w + cy
                 P[i, 2] = w
-        for f in range(fstart[k], fstart[k + 1]):
+        for f in range(fstart[piece], fstart[piece + 1]):
             a, b, c = F[f, 0], F[f, 1], F[f, 2]
             a_in, b_in, c_in = P[a, 3] >= znear, P[b, 3] >= znear, P[c, 3] >= znear
             if a_in and b_in and c_in:
@@ -1247,7 +1243,7 @@ def raster_pieces(
                         P[b, 0], P[b, 1], P[b, 2], zbuf,
                     )  # fmt: skip
             elif a_in or b_in or c_in:
-                _raster_clipped(V, a, b, c, R, t, fx, fy, cx, cy, znear, two_sided, zbuf)
+                _raster_clipped(V, a, b, c, R, t, k, two_sided, zbuf)
 
 
 @nb.njit(cache=True, nogil=True)

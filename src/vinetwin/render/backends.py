@@ -317,6 +317,7 @@ class RasterBackend:
         self._fstart = np.asarray(fstart, np.int64)
         self._P = np.empty((len(self._V), 4), np.float64)  # a view's projected vertices
         self._zbuf = np.full((camera.height, camera.width), np.inf, np.float32)
+        self._k = np.array([camera.fx, camera.fy, camera.cx, camera.cy, RASTER_ZNEAR], np.float64)
         self._lock = threading.Lock()  # the scratch arrays serve one view at a time
 
     def render(self, T_vine_camera: Any) -> DepthImage:
@@ -329,8 +330,7 @@ class RasterBackend:
         with self._lock:
             self.drawn = len(visible)
             _kernels.raster_pieces(
-                self._V, self._F, visible, self._vstart, self._fstart, R, t,
-                float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), RASTER_ZNEAR,
+                self._V, self._F, visible, self._vstart, self._fstart, R, t, self._k,
                 self.two_sided, self._zbuf, self._P,
             )  # fmt: skip
             _kernels.zbuffer_depth(self._zbuf, out)
