@@ -315,21 +315,30 @@ def test_raster_backend_is_the_ray_casters_image(sample: tuple[Twin, trimesh.Tri
 
 
 def test_raster_backend_back_faces_and_the_near_plane() -> None:
-    """A face seen from behind is drawn only with `two_sided` (as a ray caster sees it); a
-    triangle reaching behind the camera is clipped at the near plane, its part in front drawn
-    as the ray caster draws it."""
+    """A face seen from behind is drawn only with `two_sided` (as a ray caster sees it), which
+    is the default unless the mesh is closed and outward-facing; a triangle reaching behind the
+    camera is clipped at the near plane, its part in front drawn as the ray caster draws it."""
     cam = CameraModel(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5, min_depth=0.01)
     T = np.eye(4)  # the camera at the origin looking along +z
     facing = np.array([[-0.1, -0.1, 0.3], [0.1, -0.1, 0.3], [0.0, 0.1, 0.3]])
     F = np.array([[0, 1, 2]])
-    one = get_backend("raster", facing, F, cam).render(T)
-    other = get_backend("raster", facing, F[:, ::-1], cam).render(T)
-    both_sides = get_backend("raster", facing, F, cam, two_sided=True).render(T)
+    one = get_backend("raster", facing, F, cam, two_sided=False).render(T)
+    other = get_backend("raster", facing, F[:, ::-1], cam, two_sided=False).render(T)
+    both_sides = get_backend("raster", facing, F, cam).render(T)  # open: both sides by default
     o3d = get_backend("open3d", facing, F, cam, coarse_step=1).render(T)
     front, back = (one, other) if (one > 0).any() else (other, one)
     assert (front > 0).sum() > 100 and not (back > 0).any()
     np.testing.assert_allclose(both_sides, o3d, atol=1e-6)
     np.testing.assert_allclose(front, o3d, atol=1e-6)
+    # by default, front faces alone only for a closed surface whose faces face outward
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    ball.apply_translation([0.0, 0.0, 0.3])
+    open_ball = ball.faces[ball.triangles_center[:, 2] > 0.28]  # its near cap cut: inside shows
+    for faces, culls in ((ball.faces, True), (ball.faces[:, ::-1], False), (open_ball, False)):
+        r = get_backend("raster", ball.vertices, faces, cam)
+        assert r.two_sided is not culls
+        want = get_backend("open3d", ball.vertices, faces, cam, coarse_step=1).render(T)
+        np.testing.assert_allclose(r.render(T), want, atol=1e-6)  # the ray caster's image
     # a floor plane from behind the camera to 1 m ahead: clipped, not dropped or wrapped
     floor = np.array([[-1.0, 0.05, -0.5], [1.0, 0.05, -0.5], [0.0, 0.05, 1.0]])
     for f in (F, F[:, ::-1]):

@@ -273,6 +273,18 @@ RASTER_ZNEAR = 1e-3
 sees nothing nearer than 7 cm)."""
 
 
+def closed_outward(vertices: npt.NDArray[np.float32], faces: npt.NDArray[np.uint32]) -> bool:
+    """Whether the mesh is a closed surface, consistently wound, its faces facing outward
+    (positive enclosed volume): then a face seen from behind is always hidden behind one seen
+    from the front. 0.03 s for the dense vine's 897k faces."""
+    if not len(faces):
+        return True
+    F = np.ascontiguousarray(faces, dtype=np.int64)
+    if not _kernels.closed_consistent(F, len(vertices)):
+        return False
+    return _kernels.signed_volume(np.ascontiguousarray(vertices, dtype=np.float64), F) > 0
+
+
 class RasterBackend:
     """vinetwin's z-buffer rasteriser (`_kernels.raster_pieces`, compiled, one thread): the mesh in
     pieces (`RASTER_PIECE_FACES`), those in the view's frustum projected vertex by vertex and
@@ -280,21 +292,29 @@ class RasterBackend:
     one a ray cast through each pixel centre sees (`tests/test_render.py`: Open3D's, to
     micrometres), with no OpenGL and no GPU.
 
-    `two_sided` False (the default, as OpenGL's backends draw): a face seen from behind (its
-    vertices clockwise in the image, so its outward normal faces away) is not drawn. On a
-    closed, outward-facing surface (a cane's tube) nothing changes, since its front faces hide
-    its back ones, and the view takes half the time (dense vine: 4.9 against 9.9 ms). A mesh
-    whose faces are not consistently outward (an open scan, flipped patches) wants True: each
-    face is then drawn from both sides, as a ray caster sees it."""
+    `two_sided`: draw each face from both sides, as a ray caster sees it (True), or only from
+    the front (False: a face seen from behind, its vertices clockwise in the image, is left
+    out, as OpenGL's backends leave it). On a closed surface whose faces all face outward (a
+    cane's tube) the two give the same image, since its front faces hide its back ones, and
+    front faces alone take half the time (dense vine: 4.9 against 9.9 ms a view). None (the
+    default) decides by the mesh (`closed_outward`): front faces alone for a closed, outward
+    surface (the generated and imported vines), both sides otherwise (a reconstruction's open
+    TSDF surface, where culling lost 0-52 pixels a view and changed up to 18 more: an inner
+    face seen through an opening)."""
 
     name = "raster"
 
     def __init__(
-        self, vertices: Any, faces: Any, camera: CameraModel, two_sided: bool = False
+        self, vertices: Any, faces: Any, camera: CameraModel, two_sided: bool | None = None
     ) -> None:
         V, F = check_mesh(vertices, faces)
         self.camera = camera
+        if two_sided is None:
+            two_sided = not closed_outward(V, F)
+            if two_sided:
+                log.info("raster: the mesh is not closed and outward-facing: both sides drawn")
         self.two_sided = bool(two_sided)
+        """Faces drawn from both sides (see the class)."""
         pieces = mesh_pieces(V, F, RASTER_PIECE_FACES)
         self._corners = piece_corners(V, F, pieces)
         self.pieces = len(pieces)
