@@ -49,8 +49,8 @@ def _commit() -> str:
 
 
 def machine() -> dict[str, Any]:
-    """Where and when the figures were measured: the CPU and its vector width, the cores this process may use, the
-    Python, the commit and the time (UTC)."""
+    """Where and when the figures were measured: the CPU and its vector width, the cores this
+    process may use, the Python, the commit and the time (UTC)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     model, simd = _cpu()
     return {

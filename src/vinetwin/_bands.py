@@ -28,11 +28,7 @@ _POOL_LOCK = threading.Lock()
 def threads() -> int:
     """Threads a pass may use: numba's thread count."""
     import numba
-    from numba.core import config
 
-    from vinetwin import NUMBA_THREADING_LAYERS
-
-    config.THREADING_LAYER_PRIORITY = list(NUMBA_THREADING_LAYERS)  # type: ignore[attr-defined]
     return int(numba.get_num_threads())
 
 

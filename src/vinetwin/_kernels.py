@@ -12,6 +12,13 @@ from typing import Any
 
 import numba as nb
 import numpy as np
+from numba.core import config as _nb_config
+
+from vinetwin import NUMBA_THREADING_LAYERS
+
+# the order `import vinetwin` set in the environment, also where numba was imported before it;
+# set here, on the import of the kernels every band pass (`_bands`) runs, not on each pass
+_nb_config.THREADING_LAYER_PRIORITY = list(NUMBA_THREADING_LAYERS)  # type: ignore[attr-defined]
 
 
 @nb.njit(cache=True, nogil=True)

@@ -276,7 +276,8 @@ sees nothing nearer than 7 cm)."""
 def closed_outward(vertices: npt.NDArray[np.float32], faces: npt.NDArray[np.uint32]) -> bool:
     """Whether the mesh is a closed surface, consistently wound, its faces facing outward
     (positive enclosed volume): then a face seen from behind is always hidden behind one seen
-    from the front. 0.03 s for the dense vine's 897k faces."""
+    from the front. 0.04 s for the dense vine's 897k faces, where trimesh's `is_watertight`,
+    `is_winding_consistent` and `volume` take 1.5 s, which each export worker would pay."""
     if not len(faces):
         return True
     F = np.ascontiguousarray(faces, dtype=np.int64)

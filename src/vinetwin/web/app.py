@@ -119,7 +119,7 @@ class App:
     def close(self) -> None:
         """Stops the server, once the renderer's warm-up (in its own thread) is done, and
         releases the renderer."""
-        self._warming.join(timeout=60)
+        self.wait_ready(timeout=60)
         self.server.stop()
         with self.lock:
             self.session.close()
