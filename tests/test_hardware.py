@@ -191,16 +191,22 @@ def test_recording_from_the_device_plays_back(vine_views: VineViews, tmp_path: P
     del recorder, src, soft
     assert all(f is not None for f in live)
 
-    fast = RecordingSource(path, real_time=False)
-    assert fast.camera.fx == pytest.approx(cam.fx) and fast.depth_unit == pytest.approx(1e-4)
-    played = []
-    while (f := fast.read(1.0)) is not None:
-        played.append(f)
-    assert fast.ended
-    assert len(played) == len(views)
-    for f, counts in zip(played, views, strict=True):
-        np.testing.assert_array_equal(f.counts, counts)
-    assert all(b.stamp > a.stamp for a, b in pairwise(played))
+    for pause in (0.0, 0.05):  # a consumer slower than the file (rs.pipeline lost frame 1)
+        fast = RecordingSource(path, real_time=False)
+        assert fast.camera.fx == pytest.approx(cam.fx)
+        assert fast.depth_unit == pytest.approx(1e-4)
+        played = []
+        while (f := fast.read(1.0)) is not None:
+            played.append(f)
+            time.sleep(pause)
+        assert fast.ended
+        assert [f.number for f in played] == list(range(len(views)))
+        for f, counts in zip(played, views, strict=True):
+            np.testing.assert_array_equal(f.counts, counts)
+        assert all(b.stamp > a.stamp for a, b in pairwise(played))
+    with pytest.raises(SourceError, match="cannot play back"):
+        (tmp_path / "bad.db3").write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+        RecordingSource(tmp_path / "bad.db3", real_time=False)
 
     paced = open_source(f"bag:{path}")
     assert isinstance(paced, RecordingSource) and paced.real_time

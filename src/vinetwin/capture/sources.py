@@ -407,27 +407,14 @@ class RecordingSource(CameraSource):
         self.rate = rate
         self._paced_t0: float | None = None
         self._paced_n = 0
-        rs = _rs()
-        self._rs = rs
+        from vinetwin.capture.realsense import RecordingPlayback
+
         path = Path(path)
-        if not path.exists():
-            raise SourceError(f"{path}: no such recording")
-        cfg = rs.config()
-        cfg.enable_device_from_file(str(path), repeat_playback=False)
-        self._pipe = rs.pipeline()
-        try:
-            prof = self._pipe.start(cfg)
-        except RuntimeError as exc:
-            raise SourceError(f"{path}: cannot play back: {exc}") from exc
-        self._playback = prof.get_device().as_playback()
-        self._playback.set_real_time(real_time)
+
+        self._reader = RecordingPlayback(path, real_time=real_time, color=color, error=SourceError)
         self.real_time = real_time
-        streams = {s.stream_type(): s for s in prof.get_streams()}
-        if rs.stream.depth not in streams:
-            self._pipe.stop()
-            raise SourceError(f"{path}: the recording holds no depth stream")
-        self.camera = _intrinsics_camera(streams[rs.stream.depth], camera)
-        self._align = rs.align(rs.stream.depth) if color and rs.stream.color in streams else None
+        self.camera = _intrinsics_camera(self._reader.depth_profile, camera)
+        self._color = color and self._reader.color_profile is not None
         self.depth_unit = math.nan
         self._last = 0.0
         self._offset: float | None = None  # recording stamp -> monotonic, when paced
@@ -440,7 +427,6 @@ class RecordingSource(CameraSource):
         self._pending: CameraFrame | None = first
 
     def read(self, timeout: float = 1.0) -> CameraFrame | None:
-        rs = self._rs
         pending = getattr(self, "_pending", None)
         if pending is not None:
             self._pending = None
@@ -448,18 +434,13 @@ class RecordingSource(CameraSource):
         if self._stopped:
             self.ended = True
             return None
-        while True:
-            ok, fs = self._pipe.try_wait_for_frames(max(int(timeout * 1000), 1))
-            if not ok:
-                if self._playback.current_status() == rs.playback_status.stopped:
-                    self.ended = True
-                    self.close()
-                return None
-            if self._align is not None:
-                fs = self._align.process(fs)
-            d = fs.get_depth_frame()
-            if d:
-                break
+        got = self._reader.next(timeout)
+        if got is None:
+            if self._reader.ended:
+                self.ended = True
+                self.close()
+            return None
+        d, c = got
         unit = float(d.get_units())
         if math.isnan(self.depth_unit):
             self.depth_unit = unit
@@ -480,10 +461,7 @@ class RecordingSource(CameraSource):
             stamp = math.nextafter(self._last, math.inf)
         self._last = stamp
         counts = np.asanyarray(d.get_data()).copy()
-        color = None
-        if self._align is not None:
-            c = fs.get_color_frame()
-            color = np.asanyarray(c.get_data())[..., :3].copy() if c else None
+        color = np.asanyarray(c.get_data())[..., :3].copy() if self._color and c else None
         return CameraFrame(counts, unit, stamp, int(d.get_frame_number()), color)
 
     def now(self) -> float:
@@ -492,10 +470,7 @@ class RecordingSource(CameraSource):
     def close(self) -> None:
         if not self._stopped:
             self._stopped = True
-            try:
-                self._pipe.stop()
-            except RuntimeError:
-                pass
+            self._reader.close()
 
 
 # ----------------------------------------------------------------------------- by name
