@@ -369,7 +369,7 @@ def normal_quantiles(p: np.ndarray) -> np.ndarray:
     """`normal_quantile` of each element (float64)."""
     out = np.empty(p.shape[0], np.float64)
     for i in range(p.shape[0]):
-        out[i] = normal_quantile(p[i])
+        out[i] = normal_quantile(float(p[i]))
     return out
 
 
@@ -406,7 +406,7 @@ def d405_axial(
             if scale != 1.0:
                 z *= scale
             if noise:
-                z += normal_quantile(normal[i]) * (z * z * sub / fxb)
+                z += normal_quantile(float(normal[i])) * (z * z * sub / fxb)
             if dropping and drop[i] < p_drop:
                 z = 0.0
             if z < zmin or z > zmax:
