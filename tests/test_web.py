@@ -167,6 +167,63 @@ def test_page_sends_only_what_changed(twin_dir: Path) -> None:
         app.server.stop()
 
 
+def test_page_draws_the_vine_within_its_triangle_budget(
+    twin_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A vine with more triangles than `WebConfig.display_faces` is drawn decimated to the
+    budget, its surface within 1 mm of the full mesh; clicks still hit the full mesh. A larger
+    mesh (here: over a lowered threshold) is drawn clustered at once, then decimated in the
+    background. Budget 0 draws every triangle; a budget under 1000 is refused by name."""
+    import open3d as o3d
+
+    from vinetwin.errors import InputError
+    from vinetwin.web import app as web_app
+    from vinetwin.web.config import WebConfig
+    from vinetwin.web.display import quick_display_mesh
+
+    def off_surface(app: web_app.App) -> np.ndarray:
+        """Distances of the drawn mesh's vertices to the full mesh."""
+        assert app.vine_mesh is not None
+        scene = o3d.t.geometry.RaycastingScene()
+        sess = app.session
+        scene.add_triangles(sess.vertices.astype(np.float32), sess.faces.astype(np.uint32))
+        return scene.compute_distance(app.vine_mesh[0].astype(np.float32)).numpy()
+
+    app = web_app.serve(twin_dir, port=_free_port(), config=WebConfig(display_faces=20_000))
+    try:
+        assert app.wait_ready()
+        assert app.vine_display == "decimated" and 19_000 <= app.vine_faces <= 20_000
+        assert len(app.session.faces) > 100_000  # the session keeps the full mesh
+        assert np.percentile(off_surface(app), 99) < 0.001
+        origin, direction, cut = ray_at(app.session._require())
+        hit = app.session.click(origin, direction)
+        assert hit is not None and np.linalg.norm(hit[0].point - cut) < 0.008
+    finally:
+        app.close()
+
+    monkeypatch.setattr(web_app, "SYNC_DECIMATION_FACES", 1000)
+    app = web_app.serve(twin_dir, port=_free_port(), config=WebConfig(display_faces=20_000))
+    try:
+        first = app.vine_display
+        assert app.wait_ready()
+        assert first in ("clustered", "decimated")  # the background may already have finished
+        assert app.vine_display == "decimated" and app.vine_faces <= 20_000
+    finally:
+        app.close()
+
+    app = web_app.serve(twin_dir, port=_free_port(), config=WebConfig(display_faces=0))
+    try:
+        assert app.vine_display == "full" and app.vine_faces == len(app.session.faces)
+    finally:
+        app.close()
+
+    V, F = app.session.vertices, app.session.faces
+    qv, qf = quick_display_mesh(V, F, 5000)
+    assert 0 < len(qf) <= 5000 and qf.max() < len(qv)
+    with pytest.raises(InputError, match="display_faces"):
+        WebConfig(display_faces=10)
+
+
 def test_shading_setting_reaches_the_page(twin_dir: Path) -> None:
     """`WebConfig.shading`: "fast" draws the vine toon-shaded without shadows, "full" physically
     based with shadows; anything else is refused by name."""

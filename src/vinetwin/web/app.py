@@ -31,6 +31,11 @@ from vinetwin.web.session import AuthoringSession
 
 log = logging.getLogger("vinetwin.web")
 
+SYNC_DECIMATION_FACES = 300_000
+"""A mesh up to this size is decimated for the page before the app starts (about 1 s: the
+bundled sample's 128k triangles 0.4 s, hydroshoot vsp's 217k 1.2 s); a larger one is shown
+clustered at once and decimated in the background (`web.display`)."""
+
 
 @functools.cache
 def _turbo() -> np.ndarray:
@@ -104,6 +109,12 @@ class App:
         self.gizmo: Any = None
         self._gizmo_key: tuple[str, bytes] | None = None
         self._preview: Any = None  # the preview's point cloud, once shown
+        self._closing = threading.Event()
+        self._display: threading.Thread | None = None  # the vine's decimation for the page
+        self.vine: Any = None
+        # the vine as the page has it: vertices and faces, triangles, full/clustered/decimated
+        self.vine_mesh: tuple[np.ndarray, np.ndarray] | None = None
+        self.vine_faces, self.vine_display = 0, "none"
         self._static_scene()
         self._bind()
         self.refresh()
@@ -112,13 +123,18 @@ class App:
 
     def wait_ready(self, timeout: float = 120.0) -> bool:
         """Waits for the start's warm-up (the renderer and picking scene built, the compiled
-        kernels loaded or compiled: seconds on a fresh install); True once it is done."""
-        self._warming.join(timeout=timeout)
-        return not self._warming.is_alive()
+        kernels loaded or compiled: seconds on a fresh install) and the vine's decimation for
+        the page; True once both are done."""
+        end = time.monotonic() + timeout
+        for t in (self._warming, self._display):
+            if t is not None:
+                t.join(timeout=max(end - time.monotonic(), 0.0))
+        return not any(t is not None and t.is_alive() for t in (self._warming, self._display))
 
     def close(self) -> None:
         """Stops the server, once the renderer's warm-up (in its own thread) is done, and
         releases the renderer."""
+        self._closing.set()
         self.wait_ready(timeout=60)
         self.server.stop()
         with self.lock:
@@ -166,10 +182,34 @@ class App:
         self._shader_keeper = s.add_point_cloud(
             "/preview_shader", keep, np.array([[0, 0, 0], [1, 1, 1]], np.uint8), point_size=1e-6
         )
-        self.vine = s.add_mesh_simple(
-            "/vine", V.astype(np.float32), F.astype(np.uint32), color=(140, 100, 70),
-            material="standard" if full else "toon3", cast_shadow=full, receive_shadow=full,
-        )  # fmt: skip
+        # the vine as drawn: at most `display_faces` triangles (`web.display`); clicks hit the
+        # full mesh on the server
+        budget = self.config.display_faces
+        if budget and len(F) > budget and len(F) <= SYNC_DECIMATION_FACES:
+            from vinetwin.web.display import display_mesh
+
+            t0 = time.perf_counter()
+            self._show_vine(*display_mesh(V, F, budget), "decimated")
+            log.info(
+                "the page draws the vine decimated to %d of its %d triangles (%.1f s)",
+                self.vine_faces, len(F), time.perf_counter() - t0,
+            )  # fmt: skip
+        elif budget and len(F) > budget:
+            from vinetwin.web.display import quick_display_mesh
+
+            t0 = time.perf_counter()
+            self._show_vine(*quick_display_mesh(V, F, budget), "clustered")
+            log.info(
+                "the page draws the vine with %d of its %d triangles (vertices clustered, %.1f s); "
+                "a quadric decimation to %d follows",
+                self.vine_faces, len(F), time.perf_counter() - t0, budget,
+            )  # fmt: skip
+            self._display = threading.Thread(
+                target=self._decimate_vine, args=(V, F, budget), daemon=True, name="display-mesh"
+            )
+            self._display.start()
+        else:
+            self._show_vine(V.astype(np.float32), F.astype(np.uint32), "full")
         try:
             sk = sess.twin.load_skeleton()
         except VinetwinError:
@@ -214,6 +254,35 @@ class App:
             self.server.initial_camera.look_at = tuple(V.mean(0))
             self.server.initial_camera.position = tuple(V.mean(0) + np.array([0.0, -1.2, 0.3]))
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
+
+    def _show_vine(self, V: np.ndarray, F: np.ndarray, how: str) -> None:
+        full = self.config.shading == "full"
+        self.vine = self.server.scene.add_mesh_simple(
+            "/vine", V, F, color=(140, 100, 70), material="standard" if full else "toon3",
+            cast_shadow=full, receive_shadow=full,
+        )  # fmt: skip
+        self.vine_mesh, self.vine_faces, self.vine_display = (V, F), len(F), how
+
+    def _decimate_vine(self, V: np.ndarray, F: np.ndarray, budget: int) -> None:
+        """The quadric-decimated vine, sent in place of the clustered one when done."""
+        from vinetwin.web.display import display_mesh
+
+        t0 = time.perf_counter()
+        try:
+            mesh = display_mesh(V, F, budget)
+            with self.lock:
+                if self._closing.is_set():
+                    return
+                self._show_vine(*mesh, "decimated")
+        except Exception as exc:  # the clustered vine stays; the app goes on
+            log.warning(
+                "the vine's decimation for the page failed (%s); it keeps the clustered one", exc
+            )
+            return
+        log.info(
+            "the page draws the vine decimated to %d of its %d triangles (%.1f s)",
+            self.vine_faces, len(F), time.perf_counter() - t0,
+        )  # fmt: skip
 
     def refresh(self) -> None:
         """Redraws cut points and poses and the side panel from the session."""

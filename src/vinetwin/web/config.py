@@ -21,8 +21,22 @@ class WebConfig(JsonFields):
     redraws the whole view after each click; there, "fast" showed the preview 2-3x sooner on
     the bundled sample (`docs/web.md`). With a GPU either is quick."""
 
+    display_faces: int = 60_000
+    """The most triangles of the vine the page draws (0: all). A larger mesh is shown decimated
+    by quadric error (`vinetwin.web.display`): before the app starts up to 300k triangles
+    (about 1 s); a larger one at once with its vertices clustered, then decimated in the
+    background (8.8 s for the dense generated vine's 897k). Clicks still hit the full mesh on
+    the server. In software WebGL the dense vine's click to the page's next frame went from
+    1178 to 355 ms with 60k (`docs/web.md`)."""
+
     def __post_init__(self) -> None:
         from vinetwin.errors import InputError
+
+        if not (self.display_faces == 0 or self.display_faces >= 1000):
+            raise InputError(
+                f"WebConfig.display_faces must be 0 (every triangle) or at least 1000, not "
+                f"{self.display_faces}"
+            )
 
         if self.shading not in ("fast", "full"):
             raise InputError(f"WebConfig.shading must be 'fast' or 'full', not {self.shading!r}")
