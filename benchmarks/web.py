@@ -21,15 +21,17 @@ click:
 - the page's frame time (median interval of `requestAnimationFrame` while nothing changes;
   viser draws the 3D view on demand, so this is not the cost of drawing it).
 
-Each `--shading` (`WebConfig.shading`; default both, "fast" then "full") is a run of its own
-(a fresh server, browser and copy of the twin), so the two are compared in the same
-invocation. Prints the medians and the 90th percentiles against the issue's goal (150 ms);
-`--json` writes them, one entry per shading under "runs", each with the WebGL renderer the page
-reported. `--gl` picks how the page draws WebGL without a GPU (`vinetwin.web.browser.GL_ARGS`):
+Each `--shading` (`WebConfig.shading`; default both, "fast" then "full") and each
+`--display-faces` (`WebConfig.display_faces`, the most triangles of the vine the page draws;
+default its default) is a run of its own (a fresh server, browser and copy of the twin), so
+they are compared in the same invocation. Prints the medians and the 90th percentiles
+against the issue's goal (150 ms) and the triangles drawn; `--json` writes them, one entry per
+run under "runs" (keyed by shading, or "shading/faces" with several `--display-faces`), each
+with the WebGL renderer the page reported. `--gl` picks how the page draws WebGL without a GPU (`vinetwin.web.browser.GL_ARGS`):
 Chromium's SwiftShader (the default, as in the tests) or the machine's Mesa llvmpipe through
 EGL. Timings are of this machine, shared with whatever else runs on it.
 
-    .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--shading fast full] [--gl swiftshader|llvmpipe] [--json out.json]
+    .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--shading fast full] [--display-faces 60000 0] [--gl swiftshader|llvmpipe] [--json out.json]
 """
 
 from __future__ import annotations
@@ -157,6 +159,8 @@ def run(
 
     return {
         "shading": config.shading,
+        "display_faces": config.display_faces,
+        "drawn_faces": app.vine_faces,
         "renderer": renderer,
         "measured": len(browser_ms),
         "missed": missed,
@@ -181,22 +185,27 @@ def main() -> None:
     ap.add_argument("--gl", default="swiftshader", choices=sorted(GL_ARGS),
                     help="how the page's WebGL is drawn: Chromium's SwiftShader or Mesa's "
                          "llvmpipe through EGL (vinetwin.web.browser.GL_ARGS)")  # fmt: skip
+    ap.add_argument("--display-faces", type=int, nargs="+", default=[WebConfig().display_faces],
+                    help="WebConfig.display_faces values to run (0: every triangle), each "
+                         "with each shading")  # fmt: skip
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
     if not CHROMIUM.exists():
         sys.exit(f"{CHROMIUM} is missing: scripts/setup.sh installs Debian's chromium")
     runs = {}
-    for shading in args.shading:
-        with tempfile.TemporaryDirectory() as tmp:  # each run edits a fresh copy
-            twin_dir = Path(tmp) / args.twin.name
-            shutil.copytree(args.twin, twin_dir)
-            runs[shading] = run(
-                twin_dir, args.clicks, args.seed, WebConfig(shading=shading), args.gl
-            )
+    for faces in args.display_faces:
+        for shading in args.shading:
+            with tempfile.TemporaryDirectory() as tmp:  # each run edits a fresh copy
+                twin_dir = Path(tmp) / args.twin.name
+                shutil.copytree(args.twin, twin_dir)
+                key = shading if len(args.display_faces) == 1 else f"{shading}/{faces}"
+                cfg = WebConfig(shading=shading, display_faces=faces)
+                runs[key] = run(twin_dir, args.clicks, args.seed, cfg, args.gl)
     print(f"web click to preview, twin {args.twin.name}, {args.clicks} clicks per shading, "
           f"goal {GOAL_MS:.0f} ms; median / p90 ms (missed: clicks that hit no cane)")  # fmt: skip
     print(f"WebGL ({args.gl}): {next(iter(runs.values()))['renderer']}")
-    print(f"{'shading':8} {'arrive':>12} {'server':>12} {'page':>12} {'idle':>12} {'missed':>7}")
+    print(f"{'shading':14} {'drawn':>7} {'arrive':>12} {'server':>12} {'page':>12} {'idle':>12} "
+          f"{'missed':>7}")  # fmt: skip
 
     def cell(s: dict[str, float | None]) -> str:
         med = "-" if s["median"] is None else f"{s['median']:.0f}"
@@ -204,7 +213,8 @@ def main() -> None:
         return f"{med} / {p90}"
 
     for shading, out in runs.items():
-        print(f"{shading:8} {cell(out['arrive_ms']):>12} {cell(out['server_ms']):>12} "
+        print(f"{shading:14} {out['drawn_faces']:>7} {cell(out['arrive_ms']):>12} "
+              f"{cell(out['server_ms']):>12} "
               f"{cell(out['browser_ms']):>12} {cell(out['idle_ms']):>12} {out['missed']:>7}")  # fmt: skip
     write_json(args.json, {"twin": args.twin.name, "clicks": args.clicks, "goal_ms": GOAL_MS,
                            "gl": args.gl, "runs": runs})  # fmt: skip
