@@ -325,52 +325,12 @@ def d405_silhouettes(
             depth[v, u] = near + u3[k] * (hi - near)
 
 
-# Acklam's rational approximation of the standard normal quantile (relative error < 1.15e-9
-# over (0, 1); tests/test_render.py checks it against scipy.special.ndtri)
-_QA = (-3.969683028665376e01, 2.209460984245205e02, -2.759285104469687e02,
-       1.383577518672690e02, -3.066479806614716e01, 2.506628277459239e00)  # fmt: skip
-_QB = (-5.447609879822406e01, 1.615858368580409e02, -1.556989798598866e02,
-       6.680131188771972e01, -1.328068155288572e01)  # fmt: skip
-_QC = (-7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e00,
-       -2.549732539343734e00, 4.374664141464968e00, 2.938163982698783e00)  # fmt: skip
-_QD = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e00,
-       3.754408661907416e00)  # fmt: skip
-_Q_LOW = 0.02425
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def normal_quantile(p: float) -> float:
-    """The standard normal quantile of p in [0, 1) (p = 0 is taken as 2^-54, about -8.3 sigma):
-    a uniform draw turned into a normal one, in the kernel that uses it (numpy's
-    `standard_normal` took 1.17 ms for 140k draws, `random` 0.22 ms)."""
-    if p <= 0.0:
-        p = 5.551115123125783e-17
-    if p < _Q_LOW:
-        q = math.sqrt(-2.0 * math.log(p))
-        return (((((_QC[0] * q + _QC[1]) * q + _QC[2]) * q + _QC[3]) * q + _QC[4]) * q + _QC[5]) / (
-            (((_QD[0] * q + _QD[1]) * q + _QD[2]) * q + _QD[3]) * q + 1.0
-        )
-    if p > 1.0 - _Q_LOW:
-        q = math.sqrt(-2.0 * math.log(1.0 - p))
-        return -(
-            ((((_QC[0] * q + _QC[1]) * q + _QC[2]) * q + _QC[3]) * q + _QC[4]) * q + _QC[5]
-        ) / ((((_QD[0] * q + _QD[1]) * q + _QD[2]) * q + _QD[3]) * q + 1.0)
-    q = p - 0.5
-    r = q * q
-    return (
-        (((((_QA[0] * r + _QA[1]) * r + _QA[2]) * r + _QA[3]) * r + _QA[4]) * r + _QA[5])
-        * q
-        / (((((_QB[0] * r + _QB[1]) * r + _QB[2]) * r + _QB[3]) * r + _QB[4]) * r + 1.0)
-    )
-
-
 @nb.njit(cache=True, nogil=True)
-def normal_quantiles(p: np.ndarray) -> np.ndarray:
-    """`normal_quantile` of each element (float64)."""
-    out = np.empty(p.shape[0], np.float64)
-    for i in range(p.shape[0]):
-        out[i] = normal_quantile(float(p[i]))
-    return out
+def standard_normals(rng: np.random.Generator, n: int) -> np.ndarray:
+    """n standard normal draws from `rng`, the numbers and the generator's state after them
+    exactly as `rng.standard_normal(n)` gives (numba's Generator follows numpy's ziggurat;
+    tests/test_render.py), 3.5x faster: 0.34 against 1.19 ms for 140k draws."""
+    return rng.standard_normal(n)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -390,8 +350,7 @@ def d405_axial(
     v1: int,
 ) -> None:
     """Steps 2-5 of the D405 model on the valid pixels of rows v0..v1 in row-major order, in
-    place: depth times `scale`; plus N(normal[i]) * z^2 * sub / fxb (when `normal` is not
-    empty), N the standard normal quantile of the uniform draw normal[i];
+    place: depth times `scale`; plus normal[i] * z^2 * sub / fxb (when `normal` is not empty);
     invalid when drop[i] < p_drop (when `drop` is not empty); invalid outside [zmin, zmax];
     rounded to `unit` (when unit > 0). Computed in float64 and stored in the image's float32.
     `before[v]`: the valid pixels before row v (the draws are indexed over the whole image)."""
@@ -406,7 +365,7 @@ def d405_axial(
             if scale != 1.0:
                 z *= scale
             if noise:
-                z += normal_quantile(float(normal[i])) * (z * z * sub / fxb)
+                z += normal[i] * (z * z * sub / fxb)
             if dropping and drop[i] < p_drop:
                 z = 0.0
             if z < zmin or z > zmax:

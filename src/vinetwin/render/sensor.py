@@ -120,7 +120,7 @@ def apply_d405_model(
     before = _kernels.valid_rows(d, 0.0, np.inf)  # valid pixels before each row
     n = int(before[-1])
     sub = camera.subpixel if cfg.subpixel is None else cfg.subpixel
-    normal = rng.random(n) if cfg.noise else np.zeros(0)  # uniform: the kernel makes it normal
+    normal = _kernels.standard_normals(rng, n) if cfg.noise else np.zeros(0)  # numpy's stream
     drop = rng.random(n) if cfg.dropout > 0 else np.zeros(0)
     args = (
         d, normal, drop, 1.0 + cfg.bias if cfg.bias else 1.0, float(sub),
