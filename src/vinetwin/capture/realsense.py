@@ -99,6 +99,11 @@ class SoftwareD405:
         self.number += 1
 
 
+END_GRACE_S = 0.25
+"""After the playback device reports the file's end, how long `RecordingPlayback.next` still
+waits for frames its callbacks are handing over before it calls the end."""
+
+
 class RecordingPlayback:
     """The depth frames of a RealSense recording, in the file's order, each with its colour
     frame (same stamp) when `color` and the recording has colour. Read from the playback
@@ -138,6 +143,8 @@ class RecordingPlayback:
         self._depth: Any = None  # a depth frame waiting for its colour
         self._color: Any = None  # a colour frame waiting for its depth
         self._pairing: list[Any] = []
+        self._end_seen: float | None = None  # when the playback was first seen stopped
+        self._ended = False
         try:
             self._device = rs.context().load_device(str(self.path))
             self._playback = self._device.as_playback()
@@ -234,10 +241,8 @@ class RecordingPlayback:
     # the consumer's thread
     @property
     def ended(self) -> bool:
-        """The whole recording has been delivered."""
-        with self._lock:
-            held = self._depth is not None
-        return self._stopped.is_set() and self._queue.empty() and not held
+        """The whole recording has been delivered (`next` said so)."""
+        return self._ended
 
     def next(self, timeout: float = 1.0) -> tuple[Any, Any] | None:
         """The next (depth, colour or None) frames, aligned; None after `timeout` seconds
@@ -250,16 +255,24 @@ class RecordingPlayback:
                 depth, color = self._queue.get(timeout=min(0.05, max(timeout, 0.001)))
                 break
             except queue.Empty:
+                now = time.monotonic()
                 if self._stopped.is_set():
-                    with self._lock:  # the end: a last depth frame whose colour never came
+                    # the file's end: frames still being handed over by the callbacks' threads
+                    # get a moment before the end is called
+                    if self._end_seen is None:
+                        self._end_seen = now
+                    if now - self._end_seen < END_GRACE_S:
+                        continue
+                    with self._lock:  # a last depth frame whose colour never came
                         depth, self._depth = self._depth, None
                     if depth is not None:
                         color = None
                         break
                     if self._queue.empty():
+                        self._ended = True
                         return None
                     continue
-                if time.monotonic() >= deadline:
+                if now >= deadline:
                     return None
         if color is not None and self._align is not None:
             self._pairing = [depth, color]
