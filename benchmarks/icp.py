@@ -329,9 +329,34 @@ def measure(
                 "r_deg_p90": float(np.percentile(a_r, 90)),
                 "within_1mm_0.1deg": float(np.mean((a_t < 1.0) & (a_r < 0.1))),
                 "within_5mm_1deg": float(np.mean((a_t < 5.0) & (a_r < 1.0))),
+                "t_mm_cases": [round(float(x), 4) for x in a_t],  # per case, in `cases` order
             }
         )
     return rows
+
+
+#: a difference of median errors this small (mm) counts as equal accuracy
+ACCURACY_TOLERANCE_MM = 0.05
+
+
+def paired_accuracy(ours: list[float], peer: list[float], seed: int = 0) -> dict[str, Any]:
+    """Our translation errors against a peer's on the same cases (mm): the median of the per-case
+    differences (ours - peer's), its 95% bootstrap interval (2000 resamples of the cases), the
+    share of cases where ours is within `ACCURACY_TOLERANCE_MM` of the peer's or better, and a
+    verdict: "worse" when the whole interval lies above the tolerance, "better" when it lies
+    below minus the tolerance, else "equal" (the cases cannot tell them apart)."""
+    d = np.asarray(ours, float) - np.asarray(peer, float)
+    rng = np.random.default_rng(seed)
+    boot = np.median(d[rng.integers(0, len(d), (2000, len(d)))], axis=1)
+    lo, hi = (float(x) for x in np.percentile(boot, [2.5, 97.5]))
+    tol = ACCURACY_TOLERANCE_MM
+    verdict = "worse" if lo > tol else "better" if hi < -tol else "equal"
+    return {
+        "median_diff_mm": float(np.median(d)),
+        "ci95_mm": [lo, hi],
+        "within_tolerance_or_better": float(np.mean(d <= tol)),
+        "verdict": verdict,
+    }
 
 
 def add_ratios(rows: list[dict[str, Any]]) -> None:
@@ -344,6 +369,10 @@ def add_ratios(rows: list[dict[str, Any]]) -> None:
             row["fastest_peer"] = fastest["method"]
             row["ratio_to_fastest_peer"] = row["ms"] / fastest["ms"]
             row["ratios"] = {p["method"]: row["ms"] / p["ms"] for p in peers}
+            if "t_mm_cases" in row and "t_mm_cases" in fastest:
+                row["accuracy_vs_fastest_peer"] = paired_accuracy(
+                    row["t_mm_cases"], fastest["t_mm_cases"]
+                )
         if v in ("lm", "symmetric"):
             row["ratio_to_our_point_to_plane"] = row["ms"] / by["vinetwin point_to_plane"]["ms"]
 

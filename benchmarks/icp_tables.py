@@ -16,7 +16,9 @@ VARIANTS = ("point_to_point", "point_to_plane", "symmetric", "lm")
 def main() -> None:
     runs = [json.loads(Path(p).read_text()) for p in sys.argv[1:]]
     print("ICP time / fastest peer's (same objective, same clouds, same levels; LM: / our "
-          "point-to-plane); median translation error ours / the peer's (mm)\n")  # fmt: skip
+          "point-to-plane); median translation error ours / the peer's (mm); where the run "
+          "records each case's error, the median of the paired differences with its 95% "
+          "bootstrap interval and the verdict (benchmarks/icp.py paired_accuracy)\n")  # fmt: skip
     print("| vine | voxel | start | points | point-to-point | point-to-plane | symmetric | LM |")
     print("|---|---|---|---|---|---|---|---|")
     for run in runs:
@@ -29,9 +31,16 @@ def main() -> None:
                     cells.append(f"{r['ratio_to_our_point_to_plane']:.2f}")
                     continue
                 peer = rows[r["fastest_peer"]]
+                acc = r.get("accuracy_vs_fastest_peer")
+                paired = (
+                    f"; {acc['median_diff_mm']:+.2f} [{acc['ci95_mm'][0]:+.2f}, "
+                    f"{acc['ci95_mm'][1]:+.2f}] {acc['verdict']}"
+                    if acc
+                    else ""
+                )
                 cells.append(
                     f"{r['ratio_to_fastest_peer']:.2f} ({r['ms']:.1f} vs {peer['ms']:.1f} ms; "
-                    f"{r['t_mm_median']:.2f} / {peer['t_mm_median']:.2f})"
+                    f"{r['t_mm_median']:.2f} / {peer['t_mm_median']:.2f}{paired})"
                 )
             print(f"| {run.get('twin', run.get('sample'))} | {1000 * t['voxel']:.0f} mm | "
                   f"{t['start']} | {t['points']} | " + " | ".join(cells) + " |")  # fmt: skip

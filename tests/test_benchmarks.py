@@ -41,6 +41,15 @@ def test_icp_benchmark_quick(tmp_path: Path) -> None:
         for v in ("point_to_point", "point_to_plane", "symmetric"):
             assert methods[f"vinetwin {v}"]["ratio_to_fastest_peer"] > 0
         assert methods["vinetwin lm"]["ratio_to_our_point_to_plane"] > 0
+        for v in ("point_to_point", "point_to_plane", "symmetric"):
+            acc = methods[f"vinetwin {v}"]["accuracy_vs_fastest_peer"]
+            lo, hi = acc["ci95_mm"]
+            assert lo <= acc["median_diff_mm"] <= hi and acc["verdict"] in (
+                "worse",
+                "equal",
+                "better",
+            )
+            assert len(methods[f"vinetwin {v}"]["t_mm_cases"]) == table["cases"]
     assert {c["voxel"] for c in data["cycles"]} == {0.004}
     assert {c["start"] for c in data["cycles"]} == {"tracking", "warm"}
     assert all(c["hz"] > 0 and c["perception_ms"] > 0 for c in data["cycles"])
@@ -55,6 +64,25 @@ def test_icp_benchmark_quick(tmp_path: Path) -> None:
     m = data["machine"]
     assert m["cores"] >= 1 and m["cpu"] and m["python"].startswith("3.")
     assert m["measured"].startswith("20") and isinstance(m["commit"], str)
+
+
+def test_paired_accuracy_verdicts(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ICP benchmark's accuracy comparison on known per-case errors: a constant 1 mm worse
+    is "worse" with the interval at 1 mm, 1 mm better is "better", a copy is "equal", and
+    differences that scatter around 0 leave it "equal" with an interval spanning 0."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    from icp import paired_accuracy  # type: ignore[import-not-found]
+
+    peer = [0.5, 1.2, 2.0, 0.8, 3.1, 1.7, 0.9, 2.4, 1.1, 0.6, 1.9, 2.2]
+    worse = paired_accuracy([x + 1.0 for x in peer], peer)
+    assert worse["verdict"] == "worse" and worse["median_diff_mm"] == pytest.approx(1.0)
+    assert (
+        worse["ci95_mm"] == pytest.approx([1.0, 1.0]) and worse["within_tolerance_or_better"] == 0
+    )
+    assert paired_accuracy([x - 1.0 for x in peer], peer)["verdict"] == "better"
+    assert paired_accuracy(peer, peer)["verdict"] == "equal"
+    mixed = paired_accuracy([x + (0.4 if k % 2 else -0.4) for k, x in enumerate(peer)], peer)
+    assert mixed["verdict"] == "equal" and mixed["ci95_mm"][0] < 0 < mixed["ci95_mm"][1]
 
 
 def test_render_benchmark_quick(tmp_path: Path) -> None:
