@@ -3,8 +3,8 @@ triangles.
 
 A browser draws every triangle of the scene each frame, and one that draws WebGL in software
 (headless Chromium, a machine without a GPU) redraws the view after each click: the dense
-generated vine (897k triangles) took 1178 ms from a click to the page's next frame, the same
-vine decimated to 60k 355 ms (`docs/web.md`). Clicks are not affected: the server casts the
+generated vine (897k triangles) took 1144 ms from a click to the page's next frame, the same
+vine decimated to 60k 390 ms (`docs/web.md`). Clicks are not affected: the server casts the
 click's ray on the full mesh (`AuthoringSession.click`).
 
 `display_mesh` decimates by quadric error (Open3D's `simplify_quadric_decimation`: the bundled
