@@ -65,8 +65,10 @@ def _free_port() -> int:
 
 
 #: the page's status line after a preview ('' before the first): the text after STATUS
+# the status line with the text before it (the twin's cut point and pose counts), so that two
+# clicks whose latencies round alike still change it
 STATUS_JS = f"""() => {{ const t = document.body.textContent || "";
-    const i = t.lastIndexOf("{STATUS}"); return i < 0 ? "" : t.slice(i, i + 40); }}"""
+    const i = t.lastIndexOf("{STATUS}"); return i < 0 ? "" : t.slice(Math.max(0, i - 80), i + 40); }}"""
 
 
 def _status_text(page: Any) -> str:
