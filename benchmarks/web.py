@@ -27,9 +27,9 @@ default its default) is a run of its own (a fresh server, browser and copy of th
 they are compared in the same invocation. Prints the medians and the 90th percentiles
 against the issue's goal (150 ms) and the triangles drawn; `--json` writes them, one entry per
 run under "runs" (keyed by shading, or "shading/faces" with several `--display-faces`), each
-with the WebGL renderer the page reported. `--gl` picks how the page draws WebGL without a GPU (`vinetwin.web.browser.GL_ARGS`):
-Chromium's SwiftShader (the default, as in the tests) or the machine's Mesa llvmpipe through
-EGL. Timings are of this machine, shared with whatever else runs on it.
+with the WebGL renderer the page reported. `--gl` picks how the page draws WebGL without a GPU
+(`vinetwin.web.browser.GL_ARGS`): Chromium's SwiftShader (the default, as in the tests) or the
+machine's Mesa llvmpipe through EGL. Timings are of this machine, shared with whatever else runs on it.
 
     .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--shading fast full] [--display-faces 60000 0] [--gl swiftshader|llvmpipe] [--json out.json]
 """
@@ -64,9 +64,8 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-#: the page's status line after a preview ('' before the first): the text after STATUS
-# the status line with the text before it (the twin's cut point and pose counts), so that two
-# clicks whose latencies round alike still change it
+#: the page's status line after a preview ('' before the first), with the text before it (the
+#: twin's cut point and pose counts), so that two clicks whose latencies round alike change it
 STATUS_JS = f"""() => {{ const t = document.body.textContent || "";
     const i = t.lastIndexOf("{STATUS}"); return i < 0 ? "" : t.slice(Math.max(0, i - 80), i + 40); }}"""
 

@@ -10,6 +10,8 @@ through a software device: it serves tests and users without a camera.
 
 from __future__ import annotations
 
+import queue
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -115,8 +117,8 @@ class RecordingPlayback:
     reader waits for the consumer; at most `queue_size` frames are held). `real_time`:
     librealsense paces the frames at their recorded stamps; a consumer that falls behind gets
     the newest ones (the oldest are dropped), as from a live camera. `next` gives pyrealsense2
-    frames, valid until `close`; `compose` pairs a depth and a colour frame as a frameset for
-    `rs.align`. Errors are raised as `error`."""
+    frames, valid until `close`, colour aligned to depth (the pair made a frameset for
+    `rs.align` by a processing block). Errors are raised as `error`."""
 
     def __init__(
         self,
@@ -127,9 +129,6 @@ class RecordingPlayback:
         queue_size: int = 4,
         error: type[Exception] = CaptureError,
     ) -> None:
-        import queue
-        import threading
-
         rs = _rs()
         self._rs = rs
         self.path = Path(path)
@@ -188,8 +187,6 @@ class RecordingPlayback:
             self._stopped.set()
 
     def _hand_over(self, item: tuple[Any, Any]) -> None:
-        import queue
-
         if self.real_time:  # a live camera's behaviour: keep the newest
             while True:
                 try:
@@ -247,8 +244,6 @@ class RecordingPlayback:
     def next(self, timeout: float = 1.0) -> tuple[Any, Any] | None:
         """The next (depth, colour or None) frames, aligned; None after `timeout` seconds
         without one, or at the end (`ended`)."""
-        import queue
-
         deadline = time.monotonic() + timeout
         while True:
             try:
@@ -326,16 +321,15 @@ def write_recording(capture: Capture, path: str | Path) -> Path:
 def read_recording(path: str | Path, out: str | Path, max_frames: int = 0) -> Path:
     """Plays a RealSense recording back into a capture folder (every frame, in order, colour
     aligned to depth when recorded); returns its path."""
+    from vinetwin.capture.sources import _intrinsics_camera
+
     reader = RecordingPlayback(path, real_time=False, color=True)
-    frames, camera, unit = [], None, None
+    camera = _intrinsics_camera(reader.depth_profile, None)
+    frames, unit = [], None
     try:
         while (got := reader.next(timeout=5.0)) is not None:
             d, c = got
-            if camera is None:
-                i = d.profile.as_video_stream_profile().get_intrinsics()
-                camera = CameraModel(
-                    width=i.width, height=i.height, fx=i.fx, fy=i.fy, cx=i.ppx, cy=i.ppy
-                )
+            if unit is None:
                 unit = float(d.get_units())
             depth = np.asanyarray(d.get_data()).astype(np.float32) * np.float32(unit)
             color = (
@@ -348,7 +342,7 @@ def read_recording(path: str | Path, out: str | Path, max_frames: int = 0) -> Pa
                 break
     finally:
         reader.close()
-    if camera is None or unit is None:
+    if unit is None:
         raise CaptureError(f"{path}: no depth frame could be read")
     return write_capture(
         out, camera, frames, depth_unit=unit, extra={"provenance": {"recording": str(path)}}

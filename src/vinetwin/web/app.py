@@ -112,9 +112,9 @@ class App:
         self._closing = threading.Event()
         self._display: threading.Thread | None = None  # the vine's decimation for the page
         self.vine: Any = None
-        # the vine as the page has it: vertices and faces, triangles, full/clustered/decimated
+        # the vine as the page has it: vertices and faces; full, clustered or decimated
         self.vine_mesh: tuple[np.ndarray, np.ndarray] | None = None
-        self.vine_faces, self.vine_display = 0, "none"
+        self.vine_display = "none"
         self._static_scene()
         self._bind()
         self.refresh()
@@ -185,15 +185,8 @@ class App:
         # the vine as drawn: at most `display_faces` triangles (`web.display`); clicks hit the
         # full mesh on the server
         budget = self.config.display_faces
-        if budget and len(F) > budget and len(F) <= SYNC_DECIMATION_FACES:
-            from vinetwin.web.display import display_mesh
-
-            t0 = time.perf_counter()
-            self._show_vine(*display_mesh(V, F, budget), "decimated")
-            log.info(
-                "the page draws the vine decimated to %d of its %d triangles (%.1f s)",
-                self.vine_faces, len(F), time.perf_counter() - t0,
-            )  # fmt: skip
+        if budget and budget < len(F) <= SYNC_DECIMATION_FACES:
+            self._decimate_vine(V, F, budget)
         elif budget and len(F) > budget:
             from vinetwin.web.display import quick_display_mesh
 
@@ -261,24 +254,31 @@ class App:
             "/vine", V, F, color=(140, 100, 70), material="standard" if full else "toon3",
             cast_shadow=full, receive_shadow=full,
         )  # fmt: skip
-        self.vine_mesh, self.vine_faces, self.vine_display = (V, F), len(F), how
+        self.vine_mesh, self.vine_display = (V, F), how
+
+    @property
+    def vine_faces(self) -> int:
+        """The triangles of the vine as the page has it."""
+        return 0 if self.vine_mesh is None else len(self.vine_mesh[1])
 
     def _decimate_vine(self, V: np.ndarray, F: np.ndarray, budget: int) -> None:
-        """The quadric-decimated vine, sent in place of the clustered one when done."""
+        """The quadric-decimated vine, sent (in place of the clustered one, when the app shows
+        that first) once done; if decimation fails, the page keeps what it has, or gets the
+        full mesh."""
         from vinetwin.web.display import display_mesh
 
         t0 = time.perf_counter()
         try:
             mesh = display_mesh(V, F, budget)
-            with self.lock:
-                if self._closing.is_set():
-                    return
-                self._show_vine(*mesh, "decimated")
-        except Exception as exc:  # the clustered vine stays; the app goes on
-            log.warning(
-                "the vine's decimation for the page failed (%s); it keeps the clustered one", exc
-            )
+        except Exception as exc:  # the app goes on
+            log.warning("the vine's decimation for the page failed (%s)", exc)
+            if self.vine_mesh is None:
+                self._show_vine(V.astype(np.float32), F.astype(np.uint32), "full")
             return
+        with self.lock:
+            if self._closing.is_set():
+                return
+            self._show_vine(*mesh, "decimated")
         log.info(
             "the page draws the vine decimated to %d of its %d triangles (%.1f s)",
             self.vine_faces, len(F), time.perf_counter() - t0,
