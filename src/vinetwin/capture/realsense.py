@@ -101,6 +101,15 @@ class SoftwareD405:
         self.number += 1
 
 
+def intrinsics_camera(profile: Any, base: CameraModel | None) -> CameraModel:
+    """A camera model with a pyrealsense2 stream profile's size and intrinsics, the rest (noise,
+    range, depth unit) from `base` (defaults without it)."""
+    i = profile.as_video_stream_profile().get_intrinsics()
+    fields = {} if base is None else base.to_dict()
+    fields.update(width=i.width, height=i.height, fx=i.fx, fy=i.fy, cx=i.ppx, cy=i.ppy)
+    return CameraModel.from_dict(fields)
+
+
 END_GRACE_S = 0.25
 """After the playback device reports the file's end, how long `RecordingPlayback.next` still
 waits for frames its callbacks are handing over before it calls the end."""
@@ -321,10 +330,8 @@ def write_recording(capture: Capture, path: str | Path) -> Path:
 def read_recording(path: str | Path, out: str | Path, max_frames: int = 0) -> Path:
     """Plays a RealSense recording back into a capture folder (every frame, in order, colour
     aligned to depth when recorded); returns its path."""
-    from vinetwin.capture.sources import _intrinsics_camera
-
     reader = RecordingPlayback(path, real_time=False, color=True)
-    camera = _intrinsics_camera(reader.depth_profile, None)
+    camera = intrinsics_camera(reader.depth_profile, None)
     frames, unit = [], None
     try:
         while (got := reader.next(timeout=5.0)) is not None:

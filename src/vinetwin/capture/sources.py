@@ -213,13 +213,6 @@ def _host_offset() -> float:
     return time.time() - time.monotonic()
 
 
-def _intrinsics_camera(profile: Any, base: CameraModel | None) -> CameraModel:
-    i = profile.as_video_stream_profile().get_intrinsics()
-    fields = {} if base is None else base.to_dict()
-    fields.update(width=i.width, height=i.height, fx=i.fx, fy=i.fy, cx=i.ppx, cy=i.ppy)
-    return CameraModel.from_dict(fields)
-
-
 class RealSenseSource(CameraSource):
     """A RealSense depth camera (the D405), live, through pyrealsense2's sensor API: the depth
     stream (z16) at `width` x `height` and `fps`, with colour aligned to depth when `color`.
@@ -284,7 +277,9 @@ class RealSenseSource(CameraSource):
                 depth_profile = prof
             opened.setdefault(id(sensor), (sensor, []))[1].append(prof)
         assert depth_profile is not None
-        self.camera = _intrinsics_camera(depth_profile, camera)
+        from vinetwin.capture.realsense import intrinsics_camera
+
+        self.camera = intrinsics_camera(depth_profile, camera)
         self.depth_unit = float(f"{depth_sensor.get_option(rs.option.depth_units):.7g}")
         self.fps = fps
         self._align = rs.align(rs.stream.depth) if color else None
@@ -407,13 +402,13 @@ class RecordingSource(CameraSource):
         self.rate = rate
         self._paced_t0: float | None = None
         self._paced_n = 0
-        from vinetwin.capture.realsense import RecordingPlayback
+        from vinetwin.capture.realsense import RecordingPlayback, intrinsics_camera
 
         path = Path(path)
 
         self._reader = RecordingPlayback(path, real_time=real_time, color=color, error=SourceError)
         self.real_time = real_time
-        self.camera = _intrinsics_camera(self._reader.depth_profile, camera)
+        self.camera = intrinsics_camera(self._reader.depth_profile, camera)
         self._color = color and self._reader.color_profile is not None
         self.depth_unit = math.nan
         self._last = 0.0
