@@ -5,7 +5,7 @@ it in Debian's Chromium (`/usr/bin/chromium`, driven by Playwright; no browser i
 clicks the vine `--clicks` times near the centre of the 3D view (the initial view is centred on
 the first pose's cut point, on its cane). Each click places a cut point and a pruning pose and
 shows what the camera would see from it (the app's renderer, `AuthoringSession.renderer`:
-MuJoCo with EGL, else Open3D ray casting; the D405 model; the perception chain). Measured per
+the simulation's raster backend; the D405 model; the perception chain). Measured per
 click:
 
 - arrive: from Playwright's mouse click to the app's click handler starting (the browser's
@@ -21,6 +21,11 @@ click:
 - the page's frame time (median interval of `requestAnimationFrame` while nothing changes;
   viser draws the 3D view on demand, so this is not the cost of drawing it).
 
+Clicks come `--pause` seconds (default 1) after the last one's preview, as a person looks at
+each preview before clicking again; with `--pause 0` a click comes while the page is still
+drawing the last one's frames (viser's page keeps drawing for 250 ms after each change) and
+its preview waits behind them.
+
 Each `--shading` (`WebConfig.shading`; default both, "fast" then "full") and each
 `--display-faces` (`WebConfig.display_faces`, the most triangles of the vine the page draws;
 default its default) is a run of its own (a fresh server, browser and copy of the twin), so
@@ -31,7 +36,7 @@ with the WebGL renderer the page reported. `--gl` picks how the page draws WebGL
 (`vinetwin.web.browser.GL_ARGS`): Chromium's SwiftShader (the default, as in the tests) or the
 machine's Mesa llvmpipe through EGL. Timings are of this machine, shared with whatever else runs on it.
 
-    .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--shading fast full] [--display-faces 60000 0] [--gl swiftshader|llvmpipe] [--json out.json]
+    .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--pause 1] [--shading fast full] [--display-faces 60000 0] [--gl swiftshader|llvmpipe] [--json out.json]
 """
 
 from __future__ import annotations
@@ -75,7 +80,8 @@ def _status_text(page: Any) -> str:
 
 
 def run(
-    twin_dir: Path, clicks: int, seed: int, config: WebConfig, gl: Gl = "swiftshader"
+    twin_dir: Path, clicks: int, seed: int, config: WebConfig, gl: Gl = "swiftshader",
+    pause: float = 1.0,
 ) -> dict[str, Any]:
     from playwright.sync_api import TimeoutError as PlaywrightTimeout
     from playwright.sync_api import sync_playwright
@@ -141,6 +147,9 @@ def run(
                 if seen:  # the page's next frame: after the one that drew the preview
                     page.evaluate("() => new Promise(r => requestAnimationFrame(() => r(0)))")
                 idle = time.perf_counter() - t0
+                # the person looks at the preview before the next click (the page's frames for
+                # this click, its autosave's panel update, are over by then)
+                page.wait_for_timeout(1000 * pause)
                 if not seen:  # the click hit no cane (or the page did not update in 10 s)
                     missed += int(k > 0)  # the warm-up click is not one of the `clicks`
                     continue
@@ -168,6 +177,7 @@ def run(
     return {
         "shading": config.shading,
         "display_faces": config.display_faces,
+        "pause_s": pause,
         "drawn_faces": app.vine_faces,
         "renderer": renderer,
         "measured": len(browser_ms),
@@ -196,6 +206,9 @@ def main() -> None:
     ap.add_argument("--display-faces", type=int, nargs="+", default=[WebConfig().display_faces],
                     help="WebConfig.display_faces values to run (0: every triangle), each "
                          "with each shading")  # fmt: skip
+    ap.add_argument("--pause", type=float, default=1.0,
+                    help="seconds between a click's preview and the next click (0: the next "
+                         "click comes while the page is still drawing the last one's frames)")  # fmt: skip
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
     if not CHROMIUM.exists():
@@ -208,9 +221,10 @@ def main() -> None:
                 shutil.copytree(args.twin, twin_dir)
                 key = shading if len(args.display_faces) == 1 else f"{shading}/{faces}"
                 cfg = WebConfig(shading=shading, display_faces=faces)
-                runs[key] = run(twin_dir, args.clicks, args.seed, cfg, args.gl)
+                runs[key] = run(twin_dir, args.clicks, args.seed, cfg, args.gl, args.pause)
     print(f"web click to preview, twin {args.twin.name}, {args.clicks} clicks per shading, "
-          f"goal {GOAL_MS:.0f} ms; median / p90 ms (missed: clicks that hit no cane)")  # fmt: skip
+          f"{args.pause:g} s apart, goal {GOAL_MS:.0f} ms; median / p90 ms (missed: clicks "
+          f"that hit no cane)")  # fmt: skip
     print(f"WebGL ({args.gl}): {next(iter(runs.values()))['renderer']}")
     print(f"{'shading':14} {'drawn':>7} {'arrive':>12} {'server':>12} {'page':>12} {'idle':>12} "
           f"{'missed':>7}")  # fmt: skip
@@ -225,7 +239,7 @@ def main() -> None:
               f"{cell(out['server_ms']):>12} "
               f"{cell(out['browser_ms']):>12} {cell(out['idle_ms']):>12} {out['missed']:>7}")  # fmt: skip
     write_json(args.json, {"twin": args.twin.name, "clicks": args.clicks, "goal_ms": GOAL_MS,
-                           "gl": args.gl, "runs": runs})  # fmt: skip
+                           "gl": args.gl, "pause_s": args.pause, "runs": runs})  # fmt: skip
 
 
 if __name__ == "__main__":

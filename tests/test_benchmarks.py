@@ -127,9 +127,9 @@ def test_web_benchmark_quick(tmp_path: Path) -> None:
     if not CHROMIUM.exists():
         pytest.skip("Debian's chromium is not installed")
     out = tmp_path / "web.json"
-    proc, data = _quick("web.py", out, "--clicks", "2")
+    proc, data = _quick("web.py", out, "--clicks", "2", "--pause", "0.2")
     assert set(data["runs"]) == {"fast", "full"}  # both shadings, in the same invocation
-    assert data["gl"] == "swiftshader"
+    assert data["gl"] == "swiftshader" and data["pause_s"] == 0.2
     for run in data["runs"].values():
         assert "SwiftShader" in run["renderer"]  # what --gl asked for, as the page reports it
         assert run["measured"] + run["missed"] == 2 and run["measured"] >= 1, proc.stdout[-3000:]

@@ -18,8 +18,14 @@ CHROMIUM_ARGS = [
 #: renderer (needs nothing but Chromium; what the tests use), or "llvmpipe", the machine's Mesa
 #: through EGL (ANGLE's OpenGL ES back end; the EGL libraries MuJoCo's rendering installs), which
 #: drew the app's frames about twice as fast on the 2-core machine (`docs/web.md`).
+#: SwiftShader runs as the GPU process's device (ANGLE on SwiftShader's Vulkan), so the page is
+#: composited there too. With `--disable-gpu` instead, the compositor is software and reads each
+#: WebGL frame back on the page's main thread, which then waits for every frame to be drawn before
+#: it handles anything else: a click's preview took about 1.5x as long (`docs/web.md`).
+#: `--enable-unsafe-swiftshader` is Chromium's opt-in for WebGL on SwiftShader; the page is the
+#: app's own, on this machine.
 GL_ARGS: dict[str, list[str]] = {
-    "swiftshader": ["--disable-gpu"],
+    "swiftshader": ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
     "llvmpipe": ["--use-angle=gl-egl", "--ignore-gpu-blocklist"],
 }
 Gl = Literal["swiftshader", "llvmpipe"]
