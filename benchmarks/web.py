@@ -80,7 +80,11 @@ def _status_text(page: Any) -> str:
 
 
 def run(
-    twin_dir: Path, clicks: int, seed: int, config: WebConfig, gl: Gl = "swiftshader",
+    twin_dir: Path,
+    clicks: int,
+    seed: int,
+    config: WebConfig,
+    gl: Gl = "swiftshader",
     pause: float = 1.0,
 ) -> dict[str, Any]:
     from playwright.sync_api import TimeoutError as PlaywrightTimeout
