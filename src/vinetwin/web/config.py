@@ -27,7 +27,7 @@ class WebConfig(JsonFields):
     (about 1 s); a larger one at once with its vertices clustered, then decimated in the
     background (8.8 s for the dense generated vine's 897k). Clicks still hit the full mesh on
     the server. In software WebGL (SwiftShader) the dense vine's click to the page's next frame
-    took 390 ms with 60k against 1144 ms with every triangle (`docs/web.md`)."""
+    took 441 ms with 60k against 953 ms with every triangle (`docs/web.md`)."""
 
     def __post_init__(self) -> None:
         from vinetwin.errors import InputError

@@ -2,10 +2,10 @@
 triangles.
 
 A browser draws every triangle of the scene each frame, and one that draws WebGL in software
-(headless Chromium, a machine without a GPU) redraws the view after each click: the dense
-generated vine (897k triangles) took 1144 ms from a click to the page's next frame, the same
-vine decimated to 60k 390 ms (`docs/web.md`). Clicks are not affected: the server casts the
-click's ray on the full mesh (`AuthoringSession.click`).
+(headless Chromium, a machine without a GPU) redraws the view after each click: on the large
+vines a click's preview came 2-3x sooner with 60k triangles drawn (`WebConfig.display_faces`,
+`docs/web.md`). Clicks are not affected: the server casts the click's ray on the full mesh
+(`AuthoringSession.click`).
 
 `display_mesh` decimates by quadric error (Open3D's `simplify_quadric_decimation`: the bundled
 sample 0.4 s, the dense vine 8.8 s, its surface within 0.15 mm of the full mesh's vertices at
@@ -17,22 +17,25 @@ at once, and the decimated one when it is done.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import numpy.typing as npt
+
+from vinetwin import _lazy
 
 Mesh = tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32]]
 
 
-def _o3d_mesh(vertices: np.ndarray, faces: np.ndarray):  # type: ignore[no-untyped-def]
-    import open3d as o3d
-
+def _o3d_mesh(vertices: np.ndarray, faces: np.ndarray) -> Any:
+    o3d = _lazy.open3d()
     return o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
         o3d.utility.Vector3iVector(np.asarray(faces, np.int32)),
     )
 
 
-def _arrays(mesh) -> Mesh:  # type: ignore[no-untyped-def]
+def _arrays(mesh: Any) -> Mesh:
     return (
         np.asarray(mesh.vertices, np.float32),
         np.asarray(mesh.triangles, np.uint32).reshape(-1, 3),
