@@ -224,6 +224,42 @@ def test_page_draws_the_vine_within_its_triangle_budget(
         WebConfig(display_faces=10)
 
 
+def test_status_says_while_the_preview_warms_up(
+    twin_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """While the start's warm-up runs (after an install: numba compiles the kernels, tens of
+    seconds), the status line says that the camera preview is being prepared and that a click
+    waits; once it is done, it no longer says so."""
+    import threading
+
+    from vinetwin.web import app as web_app
+    from vinetwin.web.session import AuthoringSession
+
+    release = threading.Event()
+    preview = AuthoringSession.preview
+
+    def slow_preview(self: AuthoringSession, pose_id: str) -> object:
+        release.wait(30)
+        return preview(self, pose_id)
+
+    monkeypatch.setattr(AuthoringSession, "preview", slow_preview)
+    app = web_app.serve(twin_dir, port=_free_port())
+    try:
+        for _ in range(200):  # the warm-up thread takes the lock and says so
+            if "Preparing the camera preview" in app.status.content:
+                break
+            threading.Event().wait(0.05)
+        assert "Preparing the camera preview" in app.status.content
+        assert "a click waits" in app.status.content
+        release.set()
+        assert app.wait_ready()
+        assert "Preparing" not in app.status.content
+        assert "cut points" in app.status.content
+    finally:
+        release.set()
+        app.close()
+
+
 def test_shading_setting_reaches_the_page(twin_dir: Path) -> None:
     """`WebConfig.shading`: "fast" draws the vine toon-shaded without shadows, "full" physically
     based with shadows; anything else is refused by name."""
@@ -241,7 +277,7 @@ def test_shading_setting_reaches_the_page(twin_dir: Path) -> None:
             assert app.vine.material == material
             assert app.vine.cast_shadow is shadow and app.vine.receive_shadow is shadow
         finally:
-            app.server.stop()
+            app.close()
     with pytest.raises(InputError, match="shading"):
         WebConfig(shading="pretty")  # type: ignore[arg-type]
 

@@ -71,6 +71,7 @@ class App:
         self.server = viser.ViserServer(host=host, port=port, label="vinetwin", verbose=False)
         self.lock = threading.RLock()
         self.last_latency = math.nan
+        self._warming_up = False  # the start's warm-up is running (said in the status line)
         s = self.server
         g = s.gui
         self.status = g.add_markdown("")
@@ -146,12 +147,20 @@ class App:
         sess = self.session
         if sess.twin is None or not sess.twin.poses:
             return
+        t0 = time.perf_counter()
         with self.lock:
+            self._warming_up = True
+            self.refresh()  # the page says why a first click may wait
             try:
                 sess.picker()
                 sess.preview(sess.twin.poses[0].id)
             except VinetwinError as exc:
                 log.warning("preview warm-up failed: %s", exc)
+            finally:
+                self._warming_up = False
+                if not self._closing.is_set():
+                    self.refresh()
+        log.info("camera preview ready (warm-up %.1f s)", time.perf_counter() - t0)
 
     # ------------------------------------------------------------------ scene
     def _static_scene(self) -> None:
@@ -293,6 +302,11 @@ class App:
             if twin
             else ""
         )
+        if self._warming_up:
+            msg += (
+                "\n\n*Preparing the camera preview (after an install its compiled kernels are "
+                "built first, which can take a minute); a click waits for it.*"
+            )
         if sess.problem:
             msg = f"**Problem:** {sess.problem}\n\n" + msg
         if not math.isnan(self.last_latency):
