@@ -344,14 +344,18 @@ def test_no_false_success_on_dense_real_vine_views(dense_real_vine, variant: str
 
 def test_a_diverged_result_is_not_converged(vine_views: VineViews) -> None:
     """An estimate far off (ICP capped at one iteration from a 12 cm guess, so its update
-    criterion cannot have stopped it) pairs too little to be called converged, and says why."""
+    criterion cannot have stopped it) pairs too little to be called converged, and says why:
+    too little of the clouds paired ("diverged"), or fewer pairs than `min_correspondences` at
+    all, whichever the noise gives (over 13 D405 noise streams, 6 gave the second)."""
     twin = vine_views.twin
     pose = twin.poses[0]
     ref = vine_views.reference(pose.id)
     icp = ICP(ref, ICPConfig(variant="point_to_plane", schedule=(), max_iterations=1,
                              tolerance_translation=1.0, tolerance_rotation=1.0))  # fmt: skip
     r = icp.align(ref, fr.make_pose(t=[0.12, 0.0, 0.0]))
-    assert not r.converged and "diverged" in r.reason, (r.reason, r.overlap, r.coverage)
+    assert not r.converged, (r.reason, r.overlap, r.coverage)
+    assert "diverged" in r.reason or "too few correspondences" in r.reason, r.reason
+    assert r.overlap < 0.1 and r.coverage < 0.1, (r.overlap, r.coverage)
     ok = icp.align(ref, np.eye(4))
     assert ok.converged and ok.coverage > 0.9 and ok.overlap > 0.9
 
@@ -582,10 +586,15 @@ def test_association_defaults_per_variant() -> None:
 def test_coarse_levels_hand_on_early_without_moving_the_answer(vine_views: VineViews) -> None:
     """Symmetric's and LM's coarse levels stop once an update moves less than 1% of their reach
     (`COARSE_TOLERANCE`): from 2 cm / 3 deg and from 5 cm / 10 deg (`coarse_to_fine`) on the
-    sample's views, the answer is the one of coarse levels run to the full tolerances, within
-    0.05 mm / 0.01 deg (the final level settles it), in fewer iterations (point-to-plane too,
-    given the setting; by default it keeps 0, as do point-to-point and LM on points); an
-    explicit value wins and a bad one is named."""
+    sample's views, the answer is the one of coarse levels run to the full tolerances within
+    0.15 mm / 0.05 deg, well under its error to the truth (the final level settles it), in fewer
+    iterations (point-to-plane too, given the setting; by default it keeps 0, as do
+    point-to-point and LM on points); an explicit value wins and a bad one is named.
+
+    The bounds are set so the test holds for other D405 noise, not just this stream's (an
+    earlier bound of 0.05 mm / 0.01 deg held for this stream only): over 16 noise streams the
+    largest difference between right answers was 0.04 mm / 0.03 deg, while the full runs'
+    median errors to the truth were 0.06-0.23 mm / 0.04-0.08 deg."""
     from vinetwin.errors import InputError
 
     assert ICPConfig(variant="point_to_point").coarse_tolerance_in_use() == 0.0
@@ -599,7 +608,7 @@ def test_coarse_levels_hand_on_early_without_moving_the_answer(vine_views: VineV
         ICPConfig(coarse_tolerance=-0.1)
     twin = vine_views.twin
     for variant in ("point_to_plane", "symmetric", "lm"):
-        fewer = 0
+        fewer = wrong = compared = lost = 0
         for offset, angle, far in ((0.02, 3.0, False), (0.05, 10.0, True)):
             for _pose, ref, cur, D in vine_views.cases(offset, angle, per_pose=1):
                 runs = []
@@ -609,11 +618,24 @@ def test_coarse_levels_hand_on_early_without_moving_the_answer(vine_views: VineV
                     r = ICP(ref, cfg, camera=twin.camera, max_depth=0.4).align(cur)
                     runs.append(r)
                 early, full = runs
-                assert early.converged == full.converged, (early.reason, full.reason)
-                if not full.converged:
+                if not full.converged:  # a failure, named: no answer to keep
                     continue
+                if fr.pose_error(full.T_ref_cur, D)[0] > 0.002:
+                    wrong += 1  # converged elsewhere
+                    continue
+                if not early.converged:  # the hand-on cost a right answer (a named failure)
+                    lost += 1
+                    continue
+                compared += 1
                 dt, dr = fr.pose_error(early.T_ref_cur, full.T_ref_cur)
-                assert dt < 5e-5 and np.degrees(dr) < 0.01, (variant, dt, np.degrees(dr))
-                assert fr.pose_error(full.T_ref_cur, D)[0] < 0.002
+                assert dt < 1.5e-4 and np.degrees(dr) < 0.05, (variant, dt, np.degrees(dr))
                 fewer += early.iterations < full.iterations
-        assert fewer > 0, variant
+        assert fewer > 0 and compared >= 6, (variant, fewer, compared)
+        # the comparison is of right answers: at most one of the ten is wrong. Over 16 noise
+        # streams, from 5 cm / 10 deg: symmetric's full run converged far off on p2 in 6 (in
+        # the two examined 78-88 mm / 75-78 deg, pairing 60% of the smaller cloud and covering
+        # 31-33% of the reference, above `min_overlap`: a false convergence no check here
+        # names), LM's 2.0-2.6 mm off on p1 in 3. The early hand-on may cost a right answer:
+        # once in 160 cases (LM on p2 from 5 cm / 10 deg, "diverged" where the full levels
+        # found the truth)
+        assert wrong <= 1 and lost <= 1, (variant, wrong, lost)

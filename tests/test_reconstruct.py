@@ -157,24 +157,79 @@ def test_realsense_recording_round_trip(capture: Path, tmp_path: Path) -> None:
         read_recording(tmp_path / "missing.db3", tmp_path / "x")
 
 
-def test_depth_odometry_on_a_video_like_capture(vine_views: VineViews, tmp_path: Path) -> None:
-    """The fallback pose source: frame-to-frame ICP along a continuous sweep (50 frames, about
-    3 cm apart) drifts by millimetres, and the fused mesh reaches an F-score at 5 mm above 0.8."""
+@pytest.fixture(scope="module")
+def path_capture(vine_views: VineViews, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("path") / "capture"
+    return synthetic_capture(vine_views.twin, out, frames=50, trajectory="path")
+
+
+def test_depth_odometry_on_a_video_like_capture(vine_views: VineViews, path_capture: Path) -> None:
+    """The fallback pose source: frame-to-frame ICP along a continuous sweep (50 frames, 3-8 cm
+    apart) drifts by millimetres, every pair aligns (by tracking, or by the wide search where
+    the sweep speeds up), and the fused mesh reaches an F-score at 5 mm above 0.75.
+
+    Measured over 16 D405 noise streams (docs/reconstruct.md): no pair failed (the wide search
+    aligned the fastest step, 85 mm, in 5 of them; before it that pair failed), median pose
+    error 0.6-1.4 mm, F-score at 5 mm 0.79-0.99: the chain's rotation drift (up to 1.2 deg at
+    the median in the worst stream) sets it."""
     from vinetwin import frames as fr
     from vinetwin.reconstruct.odometry import odometry_poses
     from vinetwin.reconstruct.sfm import align_to
 
-    cap = read_capture(
-        synthetic_capture(vine_views.twin, tmp_path / "path", frames=50, trajectory="path")
-    )
+    cap = read_capture(path_capture)
     odo = odometry_poses(cap)
     assert odo.failed == []
+    assert len(odo.searched) <= 2, odo.searched
     truth = kinematic_poses(cap)
     aligned = align_to(odo.poses, truth)
     err = np.array([fr.pose_error(aligned[k], truth[k])[0] for k in aligned])
-    assert np.median(err) < 0.01, np.median(err)
+    assert np.median(err) < 0.005, np.median(err)
     ev = fused_scores(cap, aligned, truth, vine_views)
-    assert ev["fscore@5mm"] > 0.8, ev
+    assert ev["fscore@5mm"] > 0.75, ev
+
+
+def test_depth_odometry_bridges_dropped_frames_or_names_them(path_capture: Path) -> None:
+    """Two frames dropped twice from the sweep (a recording that lost frames), so that the pairs
+    of frames 12 and 42 span three steps. With stamps, the constant-velocity guess scales with
+    the longer interval and tracking aligns both. Without stamps, tracking from the last step
+    mostly fails there: the wide search aligns the pair or it is reported as failed, and the
+    pair after a searched one is tracked from the step before the gap, not the gap's triple
+    step. Either way every pair not reported failed is within 5 mm / 1 deg of the true motion.
+
+    Over 16 D405 noise streams, with stamps tracking aligned all 32 gaps; without stamps the
+    search aligned 17 of them and the other 15 were reported failed (one answer it found, 145 mm
+    off, paired 44% of the smaller cloud and was refused: `SEARCH_MIN_OVERLAP`). In a 17th
+    stream (the quantile draws tried in e8410dc) tracking bridged one gap itself."""
+    import dataclasses
+    import itertools
+
+    from vinetwin import frames as fr
+    from vinetwin.reconstruct.odometry import odometry_poses
+
+    cap = read_capture(path_capture)
+    gaps = {"000012", "000042"}
+    for stamps in (True, False):
+        frames = [
+            dataclasses.replace(f, stamp=k / 30 if stamps else None)
+            for k, f in enumerate(cap.frames)
+            if k not in (10, 11, 40, 41)
+        ]
+        gappy = dataclasses.replace(cap, frames=frames)
+        odo = odometry_poses(gappy)
+        truth = kinematic_poses(gappy)
+        if stamps:
+            assert not gaps & set(odo.failed + odo.searched), (odo.failed, odo.searched)
+        else:
+            # tracking from the last step rarely bridges a gap (once in 34 below)
+            assert gaps & set(odo.failed + odo.searched), (odo.failed, odo.searched)
+        ids = [f.id for f in frames]
+        for a, b in itertools.pairwise(ids):
+            if b in odo.failed:
+                continue
+            step = np.linalg.inv(odo.poses[a]) @ odo.poses[b]
+            true = np.linalg.inv(truth[a]) @ truth[b]
+            et, er = fr.pose_error(step, true)
+            assert et < 0.005 and np.degrees(er) < 1.0, (stamps, b, et, np.degrees(er))
 
 
 def test_structure_from_motion_that_registers_nothing_is_named(

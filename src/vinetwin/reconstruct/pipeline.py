@@ -72,9 +72,12 @@ def reconstruct(
 
         odo = odometry_poses(cap)
         poses = align_to(odo.poses, kinematic_poses(cap)) if cap.has_poses else odo.poses
-        pose_report = {"failed_pairs": odo.failed, "seconds": odo.seconds}
+        pose_report = {
+            "failed_pairs": odo.failed, "searched_pairs": odo.searched, "seconds": odo.seconds
+        }  # fmt: skip
         log.info(
-            "odometry over %d frames in %.1f s%s", len(cap.frames), odo.seconds,
+            "odometry over %d frames in %.1f s%s%s", len(cap.frames), odo.seconds,
+            f"; pairs aligned by the wide search: {', '.join(odo.searched)}" if odo.searched else "",
             f"; pairs that did not align: {', '.join(odo.failed)}" if odo.failed else "",
         )  # fmt: skip
     elif cfg.poses == "colmap":
