@@ -39,6 +39,15 @@ def pytest_configure(config: pytest.Config) -> None:
         _kernels.standard_normals = other_stream
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if not config.getoption("--noise-stream"):
+        return
+    skip = pytest.mark.skip(reason="compares with numpy's noise stream or worker processes' noise")
+    for item in items:
+        if "numpy_noise" in item.keywords:
+            item.add_marker(skip)
+
+
 def shared(*parts: str) -> Path:
     p = SHARED_DATA.joinpath(*parts)
     if not p.exists():

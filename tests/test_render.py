@@ -204,6 +204,7 @@ def test_export_isolates_a_failing_pose(twin_copy: Twin, monkeypatch: pytest.Mon
     assert not (twin_copy.references_dir / "p2.json").exists()
 
 
+@pytest.mark.numpy_noise
 def test_parallel_export_matches_serial(twin_copy: Twin, tmp_path: Path) -> None:
     other = Twin.load(shutil.copytree(twin_copy.root, tmp_path / "other.twin"))
     export_references(twin_copy, workers=1)
@@ -659,6 +660,7 @@ def _d405_numpy(
     return full
 
 
+@pytest.mark.numpy_noise
 @pytest.mark.parametrize(
     "cfg",
     [
@@ -693,6 +695,7 @@ def test_compiled_d405_model_reproduces_the_numpy_formulation(
         assert (ref > 0).sum() > 1000
 
 
+@pytest.mark.numpy_noise
 def test_compiled_normal_draws_are_numpys() -> None:
     """The D405 model's normal draws, made in compiled code, are numpy's `standard_normal`'s to
     the bit and leave the generator where numpy leaves it (the next draws agree too)."""

@@ -141,6 +141,7 @@ def test_executor_isolates_a_failing_job(kind: str) -> None:
     assert isinstance(outs[0], Outcome)
 
 
+@pytest.mark.numpy_noise
 def test_vineyard_export_is_identical_through_every_executor(tmp_path: Path) -> None:
     pytest.importorskip("ray")
     roots = {k: _vineyard(tmp_path, k) for k in ("inprocess", "pool", "ray")}
@@ -159,6 +160,7 @@ def test_vineyard_export_is_identical_through_every_executor(tmp_path: Path) -> 
     assert files["ray"] == files["inprocess"]
 
 
+@pytest.mark.numpy_noise
 @pytest.mark.parametrize("kind", ["local", "ray"])
 def test_a_worker_killed_mid_export_loses_nothing(
     kind: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -190,6 +192,7 @@ def test_a_worker_killed_mid_export_loses_nothing(
     assert _files(root) == _files(clean)
 
 
+@pytest.mark.numpy_noise
 @pytest.mark.parametrize("kind", ["local", "ray"])
 def test_a_writer_killed_before_its_rename_leaves_no_litter(
     kind: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch

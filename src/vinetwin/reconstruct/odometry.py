@@ -3,16 +3,19 @@ structure-from-motion result.
 
 Open3D's dense RGB-D odometry was tried first and failed on vine captures (thin canes against an
 empty background: a single pair's error exceeded the motion between the frames; see
-docs/reconstruct.md). vinetwin instead chains its own point-to-plane ICP (`registration.icp`, the same
-perception chain as the servo) between consecutive frames, each starting from the previous
-motion (constant velocity; scaled by the ratio of the frames' intervals when the capture has
-stamps, so that a dropped frame doubles the predicted step). It needs a video-like capture (frames a few centimetres and degrees
-apart). A pair that does not align from there (the sweep sped up or turned: a start several
-centimetres off) is registered again by the servo's wide search (`registration.search`, from
-hypotheses `SEARCH_TRANSLATION` / `SEARCH_ROTATION` around the same prediction) and reported as
-searched; a pair the search cannot place either, or places ambiguously, keeps the previous
-motion and is reported as failed. Poses come out in the first frame's camera frame, metric; the
-drift grows with the path length.
+docs/reconstruct.md). vinetwin instead chains its own point-to-plane ICP (`registration.icp`,
+the same perception chain as the servo) between consecutive frames, each starting from the
+previous motion (constant velocity; scaled by the ratio of the frames' intervals when the
+capture has stamps, so that a dropped frame doubles the predicted step). It needs a video-like
+capture (frames a few centimetres and degrees apart).
+
+A pair that does not align from there (the sweep sped up or turned: a start several centimetres
+off) is registered again by the servo's wide search (`registration.search`, from hypotheses
+`SEARCH_TRANSLATION` / `SEARCH_ROTATION` around the same prediction) and reported as searched.
+After a searched or failed pair, a pair whose own guess fails is tried from the last step
+tracking found. A pair none of these places (or the search places ambiguously) keeps the guess
+and is reported as failed. Poses come out in the first frame's camera frame, metric; the drift
+grows with the path length.
 """
 
 from __future__ import annotations
@@ -76,9 +79,11 @@ def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None)
         guess = _prediction(step, capture, k)
         icp = ICP(clouds[k - 1], cfg)
         r = icp.align(clouds[k], guess)
-        if not _kept(r) and searched and searched[-1] == capture.frames[k - 1].id:
-            # the last step came from the search: a gap (a dropped frame) rather than a new
-            # speed, when the frames have no stamps to tell; the step tracking found, then
+        last = capture.frames[k - 1].id
+        if not _kept(r) and last in searched[-1:] + failed[-1:]:
+            # the last step came from the search (a gap, a dropped frame, rather than a new
+            # speed, when the frames have no stamps to tell) or was extrapolated: the step
+            # tracking found, then
             r = icp.align(clouds[k], _prediction(tracked, capture, k))
         if not _kept(r):
             found = WideSearch(clouds[k - 1]).align(
