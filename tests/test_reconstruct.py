@@ -168,10 +168,10 @@ def test_depth_odometry_on_a_video_like_capture(vine_views: VineViews, path_capt
     apart) drifts by millimetres, every pair aligns (by tracking, or by the wide search where
     the sweep speeds up), and the fused mesh reaches an F-score at 5 mm above 0.75.
 
-    Measured over 16 D405 noise streams (docs/reconstruct.md): no pair failed (the wide search
-    aligned the fastest step, 85 mm, in 5 of them; before it that pair failed), median pose
-    error 0.6-1.4 mm, F-score at 5 mm 0.79-0.99: the chain's rotation drift (up to 1.2 deg at
-    the median in the worst stream) sets it."""
+    Measured over 16 D405 noise streams and the quantile draws of e8410dc (docs/reconstruct.md):
+    no pair failed (the wide search aligned the fastest step, 85 mm, in 6 of them; before it
+    that pair failed), median pose error 0.6-1.7 mm, F-score at 5 mm 0.80-0.99: the chain's
+    rotation drift (up to 1.2 deg at the median in the worst stream) sets it."""
     from vinetwin import frames as fr
     from vinetwin.reconstruct.odometry import odometry_poses
     from vinetwin.reconstruct.sfm import align_to
@@ -196,10 +196,10 @@ def test_depth_odometry_bridges_dropped_frames_or_names_them(path_capture: Path)
     pair after a searched one is tracked from the step before the gap, not the gap's triple
     step. Either way every pair not reported failed is within 5 mm / 1 deg of the true motion.
 
-    Over 16 D405 noise streams, with stamps tracking aligned all 32 gaps; without stamps the
-    search aligned 17 of them and the other 15 were reported failed (one answer it found, 145 mm
-    off, paired 44% of the smaller cloud and was refused: `SEARCH_MIN_OVERLAP`). In a 17th
-    stream (the quantile draws tried in e8410dc) tracking bridged one gap itself."""
+    Over 16 D405 noise streams and the quantile draws tried in e8410dc, with stamps tracking
+    aligned all 34 gaps; without stamps the search aligned 18 and the other 16 were reported
+    failed. Two wrong answers, 145 mm (searched) and 254 mm (tracked) off, paired 44% of the
+    smaller cloud and are refused (`odometry.MIN_OVERLAP`)."""
     import dataclasses
     import itertools
 
@@ -220,7 +220,7 @@ def test_depth_odometry_bridges_dropped_frames_or_names_them(path_capture: Path)
         if stamps:
             assert not gaps & set(odo.failed + odo.searched), (odo.failed, odo.searched)
         else:
-            # tracking from the last step rarely bridges a gap (once in 34 below)
+            # tracking from the last step did not bridge any of the 34 gaps below
             assert gaps & set(odo.failed + odo.searched), (odo.failed, odo.searched)
         ids = [f.id for f in frames]
         for a, b in itertools.pairwise(ids):
