@@ -181,10 +181,15 @@ def test_memoised_tree_answers_stay_exact() -> None:
 @pytest.mark.parametrize("variant", ["point_to_plane", "symmetric", "lm"])
 def test_vine_views_recover_known_transforms(vine_views: VineViews, variant: str) -> None:
     """Warm start (2 cm / 3 deg) on the sample's D405 views, each cloud with its own noise: the
-    median within 0.5 mm / 0.1 deg, every case within 1.5 mm / 0.5 deg. (The issue's goal is
+    median within 0.5 mm / 0.12 deg, every case within 2 mm / 0.75 deg. (The issue's goal is
     1 mm / 0.1 deg for every case; about one case in seven misses it in rotation, see the
     closing note of issue 4 and benchmarks/icp.py.) LM measures its distances to the reference
-    surface by default (`lm_model`), so it is held to the same bounds."""
+    surface by default (`lm_model`), so it is held to the same bounds.
+
+    The bounds hold for other D405 noise, not only this stream's (docs/testing.md): over 16
+    streams and the quantile draws of e8410dc, the medians were at most 0.28 mm / 0.096 deg
+    (LM) and the worst cases 1.44 mm / 0.61 deg (LM; point-to-plane 1.36 mm / 0.59 deg). The
+    earlier 1.5 mm / 0.5 deg for every case failed in 4 of the 17."""
     twin = vine_views.twin
     errs = []
     for _pose, ref, cur, D in vine_views.cases(0.02, 3.0, per_pose=2):
@@ -194,8 +199,8 @@ def test_vine_views_recover_known_transforms(vine_views: VineViews, variant: str
         dt, dr = fr.pose_error(r.T_ref_cur, D)
         errs.append((1000 * dt, np.degrees(dr)))
     e = np.array(errs)
-    assert np.median(e[:, 0]) < 0.5 and np.median(e[:, 1]) < 0.1, e
-    assert e[:, 0].max() < 1.5 and e[:, 1].max() < 0.5, e
+    assert np.median(e[:, 0]) < 0.5 and np.median(e[:, 1]) < 0.12, e
+    assert e[:, 0].max() < 2.0 and e[:, 1].max() < 0.75, e
 
 
 #: point-to-point's residuals: point-to-point itself and LM on the points
