@@ -71,6 +71,7 @@ def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None)
     poses = {capture.frames[0].id: np.eye(4)}
     T = np.eye(4)
     step = tracked = np.eye(4)  # the last step, and the last one tracking found
+    step_tracked = True  # whether `step` is `tracked`
     failed: list[str] = []
     searched: list[str] = []
     for k in range(1, len(clouds)):
@@ -79,13 +80,13 @@ def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None)
         guess = _prediction(step, capture, k)
         icp = ICP(clouds[k - 1], cfg)
         r = icp.align(clouds[k], guess)
-        last = capture.frames[k - 1].id
-        if not _kept(r) and last in searched[-1:] + failed[-1:]:
+        if not _kept(r) and not step_tracked:
             # the last step came from the search (a gap, a dropped frame, rather than a new
             # speed, when the frames have no stamps to tell) or was extrapolated: the step
             # tracking found, then
             r = icp.align(clouds[k], _prediction(tracked, capture, k))
-        if not _kept(r):
+        step_tracked = _kept(r)
+        if not step_tracked:
             found = WideSearch(clouds[k - 1]).align(
                 clouds[k], guess, translation=SEARCH_TRANSLATION, rotation=SEARCH_ROTATION,
                 accept=lambda r: "" if _kept(r) else f"overlap {r.overlap:.2f} < {MIN_OVERLAP}",
@@ -95,11 +96,11 @@ def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None)
                 searched.append(fid)
         if _kept(r):
             step = r.T_ref_cur
-            if not searched or searched[-1] != fid:
-                tracked = step
         else:
             step = guess
             failed.append(fid)
+        if step_tracked:
+            tracked = step
         T = T @ step
         poses[fid] = T.copy()
     if len(failed) == len(clouds) - 1:
