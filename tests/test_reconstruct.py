@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -200,7 +201,6 @@ def test_depth_odometry_bridges_dropped_frames_or_names_them(path_capture: Path)
     aligned all 34 gaps; without stamps the search aligned 18 and the other 16 were reported
     failed. Two wrong answers, 145 mm (searched) and 254 mm (tracked) off, paired 44% of the
     smaller cloud and are refused (`odometry.MIN_OVERLAP`)."""
-    import dataclasses
     import itertools
 
     from vinetwin import frames as fr
@@ -266,3 +266,31 @@ def test_a_frame_seeing_only_beyond_the_fusion_range_is_skipped(
     res = fuse(cap, kinematic_poses(cap), FusionConfig(voxel=0.002, truncation=0.008))
     assert len(res.frames_used) == 5 and len(res.faces) > 100
     assert list(res.frames_skipped.values()) == ["no depth within range"]
+
+
+def test_a_frame_with_a_few_scattered_pixels_is_skipped_and_named(
+    vine_views: VineViews, tmp_path: Path
+) -> None:
+    """A frame with four scattered depth pixels within range, those of a frame of a sweep past
+    hydroshoot's gdc_can1_grapevine: Open3D aborted the whole integration on it ("No block is
+    touched"). Under `FusionConfig.min_pixels` it is skipped by that rule; with the rule off,
+    Open3D's refusal is caught and named, and the other frames are fused either way."""
+    from vinetwin.capture.folder import write_capture
+
+    cam = vine_views.twin.camera
+    pose = vine_views.twin.poses[0].T_vine_camera
+    few = np.zeros((cam.height, cam.width))
+    for v, u, z in ((2, 615, 0.3675), (23, 613, 0.1849), (31, 613, 0.3572), (103, 77, 0.3488)):
+        few[v, u] = z
+    grey = np.full((cam.height, cam.width, 3), 128, np.uint8)
+    frames = [(grey, vine_views.depth(pose, 4 + k), pose) for k in range(4)]
+    cap = read_capture(
+        write_capture(tmp_path / "cap", cam, [*frames[:2], (grey, few, pose), *frames[2:]])
+    )
+    cfg = FusionConfig(voxel=0.002, truncation=0.008)
+    for rule, reason in ((cfg, "4 depth pixels within range, fewer than the minimum 100"),
+                         (dataclasses.replace(cfg, min_pixels=0), "Open3D could not integrate it: No block is touched")):  # fmt: skip
+        res = fuse(cap, kinematic_poses(cap), rule)
+        assert res.frames_used == ["000000", "000001", "000003", "000004"]
+        assert list(res.frames_skipped) == ["000002"] and len(res.faces) > 100
+        assert res.frames_skipped["000002"].startswith(reason), res.frames_skipped

@@ -13,6 +13,7 @@ is against the whole ground truth.
 
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -44,6 +45,10 @@ class FusionConfig:
     """Decimate to at most this many triangles (0: keep)."""
     block_count: int = 200_000
     """Capacity of the voxel-block hash map (blocks of 8^3 voxels)."""
+    min_pixels: int = 100
+    """A frame with fewer depth pixels than this within [depth_min, depth_max] is skipped and
+    named: it adds nothing a mesh could keep, and Open3D aborts the whole integration on some
+    (four scattered pixels, in a sweep past a large vine: "No block is touched")."""
 
 
 @dataclass
@@ -88,8 +93,14 @@ def fuse(
         d16 = f.depth_counts().copy()
         d16[d16 < int(cfg.depth_min * scale)] = 0
         d16[d16 > int(cfg.depth_max * scale)] = 0  # Open3D aborts on a frame it cannot use
-        if not d16.any():
+        n_pixels = int(np.count_nonzero(d16))
+        if n_pixels == 0:
             skipped[f.id] = "no depth within range"
+            continue
+        if n_pixels < cfg.min_pixels:
+            skipped[f.id] = (
+                f"{n_pixels} depth pixels within range, fewer than the minimum {cfg.min_pixels}"
+            )
             continue
         color = (
             f.color()
@@ -99,10 +110,16 @@ def fuse(
         depth_img = o3d.t.geometry.Image(o3c.Tensor(d16))
         color_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color)))
         ext = o3c.Tensor(invert(poses[f.id]), o3c.float64)
-        blocks = vbg.compute_unique_block_coordinates(
-            depth_img, K, ext, scale, cfg.depth_max, trunc_voxels
-        )
-        vbg.integrate(blocks, depth_img, color_img, K, K, ext, scale, cfg.depth_max, trunc_voxels)
+        try:
+            blocks = vbg.compute_unique_block_coordinates(
+                depth_img, K, ext, scale, cfg.depth_max, trunc_voxels
+            )
+            vbg.integrate(
+                blocks, depth_img, color_img, K, K, ext, scale, cfg.depth_max, trunc_voxels
+            )
+        except RuntimeError as exc:  # one frame Open3D refuses does not lose the others
+            skipped[f.id] = f"Open3D could not integrate it: {_open3d_message(exc)}"
+            continue
         used.append(f.id)
         if progress:
             progress(f.id, k + 1, len(capture.frames))
@@ -127,6 +144,12 @@ def fuse(
     if len(F) == 0:
         raise CaptureError(f"{capture.root}: fusion produced an empty mesh")
     return FusionResult(V, F, used, skipped, time.perf_counter() - t0, removed)
+
+
+def _open3d_message(exc: BaseException) -> str:
+    """Open3D's own words from one of its errors, without the C++ signature and colour codes."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).strip()
+    return text.split(".cpp:", 1)[-1].split(": ", 1)[-1].strip() or text
 
 
 def kinematic_poses(capture: Capture) -> dict[str, Array]:

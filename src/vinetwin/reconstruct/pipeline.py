@@ -129,6 +129,12 @@ def reconstruct(
         "fused %d frames in %.1f s: %d triangles -> %s",
         len(res.frames_used), res.seconds, len(res.faces), twin_dir,
     )  # fmt: skip
+    if res.frames_skipped:
+        reasons: dict[str, list[str]] = {}
+        for fid, why in res.frames_skipped.items():
+            reasons.setdefault(why, []).append(fid)
+        for why, fids in reasons.items():
+            log.warning("%d frames not fused (%s): %s", len(fids), why, ", ".join(fids))
     if ground_truth is not None:
         gt_path = Path(ground_truth)
         gt = (
