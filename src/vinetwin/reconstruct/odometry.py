@@ -14,8 +14,9 @@ off) is registered again by the servo's wide search (`registration.search`, from
 `SEARCH_TRANSLATION` / `SEARCH_ROTATION` around the same prediction) and reported as searched.
 After a searched or failed pair, a pair whose own guess fails is tried from the last step
 tracking found. A pair none of these places (or the search places ambiguously) keeps the guess
-and is reported as failed. Poses come out in the first frame's camera frame, metric; the drift
-grows with the path length.
+and is reported as failed: it starts a new run (`OdometryResult.runs`), since its pose relative
+to the frames before it is a guess, and the reconstruction fuses only the longest run. Poses come
+out in the first frame's camera frame, metric; the drift grows with the path length.
 """
 
 from __future__ import annotations
@@ -55,6 +56,14 @@ class OdometryResult:
     searched: list[str] = field(default_factory=list)
     """Frames that tracking did not align to their predecessor and the wide search did."""
     seconds: float = 0.0
+    runs: list[list[str]] = field(default_factory=list)
+    """The frames in runs linked by aligned pairs: a failed frame starts a new run, since its
+    pose relative to the frames before it is a guess. `longest_run` is what can be fused."""
+
+    @property
+    def longest_run(self) -> list[str]:
+        """The longest run (the first of equals)."""
+        return max(self.runs, key=len) if self.runs else []
 
 
 def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None) -> OdometryResult:
@@ -105,7 +114,12 @@ def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None)
         poses[fid] = T.copy()
     if len(failed) == len(clouds) - 1:
         raise CaptureError(f"{capture.root}: odometry aligned no frame pair")
-    return OdometryResult(poses, failed, searched, time.perf_counter() - t0)
+    runs: list[list[str]] = []
+    for f in capture.frames:
+        if not runs or f.id in failed:
+            runs.append([])
+        runs[-1].append(f.id)
+    return OdometryResult(poses, failed, searched, time.perf_counter() - t0, runs)
 
 
 def _prediction(step: Array, capture: Capture, k: int) -> Array:

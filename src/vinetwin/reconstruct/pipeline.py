@@ -66,20 +66,35 @@ def reconstruct(
         )
     cap = read_capture(capture)
     pose_report: dict[str, object] = {}
+    not_fused: dict[str, str] = {}
     if cfg.poses == "odometry":
         from vinetwin.reconstruct.odometry import odometry_poses
         from vinetwin.reconstruct.sfm import align_to
 
         odo = odometry_poses(cap)
-        poses = align_to(odo.poses, kinematic_poses(cap)) if cap.has_poses else odo.poses
+        run = odo.longest_run
+        # only the longest run of linked frames: a frame after a failed pair is placed by a
+        # guess, and so is every frame chained to it
+        poses = {k: odo.poses[k] for k in run}
+        if cap.has_poses:
+            poses = align_to(poses, kinematic_poses(cap))
         pose_report = {
-            "failed_pairs": odo.failed, "searched_pairs": odo.searched, "seconds": odo.seconds
+            "failed_pairs": odo.failed, "searched_pairs": odo.searched, "seconds": odo.seconds,
+            "runs": [[r[0], r[-1], len(r)] for r in odo.runs],
         }  # fmt: skip
         log.info(
             "odometry over %d frames in %.1f s%s%s", len(cap.frames), odo.seconds,
             f"; pairs aligned by the wide search: {', '.join(odo.searched)}" if odo.searched else "",
             f"; pairs that did not align: {', '.join(odo.failed)}" if odo.failed else "",
         )  # fmt: skip
+        if len(odo.runs) > 1:
+            log.warning(
+                "odometry linked %d runs of frames; fusing the longest, %s to %s (%d of %d "
+                "frames): the others' poses relative to it are unknown",
+                len(odo.runs), run[0], run[-1], len(run), len(cap.frames),
+            )  # fmt: skip
+            skip = f"odometry: not linked to the run fused ({run[0]} to {run[-1]})"
+            not_fused = {f.id: skip for f in cap.frames if f.id not in poses}
     elif cfg.poses == "colmap":
         from vinetwin.reconstruct.sfm import align_to, colmap_poses
 
@@ -108,6 +123,7 @@ def reconstruct(
         target_triangles=cfg.target_triangles,
     )
     res = fuse(cap, poses, fusion, progress)
+    res.frames_skipped.update(not_fused)  # why they had no pose
     source = {"reconstructed_from": str(capture), "poses": cfg.poses, "voxel": cfg.voxel}
     if (twin_dir / TWIN_FILE).exists():
         existing = Twin.load(twin_dir)
