@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -246,7 +247,7 @@ class CaptureWriter:
 def write_capture(
     root: str | Path,
     camera: CameraModel,
-    frames: list[tuple[np.ndarray, np.ndarray, Array | None]],
+    frames: Sequence[tuple[np.ndarray, np.ndarray, Array | None]],
     depth_unit: float = 1e-4,
     extra: dict[str, Any] | None = None,
 ) -> Path:

@@ -100,6 +100,7 @@ def reconstruct(
 
         sfm = colmap_poses(cap)
         poses = sfm.poses
+        not_fused = dict.fromkeys(sfm.unregistered, "structure-from-motion did not register it")
         if cap.has_poses:  # express the mesh in the robot base, as kinematics would
             poses = align_to(poses, kinematic_poses(cap))
         pose_report = {
