@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import shutil
 from pathlib import Path
@@ -202,7 +203,6 @@ def test_depth_odometry_bridges_dropped_frames_or_names_them(path_capture: Path)
     aligned all 34 gaps; without stamps the search aligned 18 and the other 16 were reported
     failed. Two wrong answers, 145 mm (searched) and 254 mm (tracked) off, paired 44% of the
     smaller cloud and are refused (`odometry.MIN_OVERLAP`)."""
-    import itertools
 
     from vinetwin import frames as fr
     from vinetwin.reconstruct.odometry import odometry_poses
@@ -231,6 +231,31 @@ def test_depth_odometry_bridges_dropped_frames_or_names_them(path_capture: Path)
             true = np.linalg.inv(truth[a]) @ truth[b]
             et, er = fr.pose_error(step, true)
             assert et < 0.005 and np.degrees(er) < 1.0, (stamps, b, et, np.degrees(er))
+
+
+def test_depth_odometry_on_a_sweep_too_fast_keeps_only_right_pairs(path_capture: Path) -> None:
+    """Every third frame of the sweep (steps of 9-25 cm, views that barely overlap, no stamps):
+    most pairs fail and are named; a pair that is kept is right, within 5 mm / 1 deg of the true
+    motion. Measured with the seeded noise: without the backwards check
+    (`odometry.CONSISTENCY_TRANSLATION`) two pairs were kept 217 mm / 25 deg and 204 mm / 21 deg
+    off (starting at frames 0 and 2); with it none, and 12 and 7 of 16 and 15 pairs failed."""
+    from vinetwin import frames as fr
+    from vinetwin.reconstruct.odometry import odometry_poses
+
+    cap = read_capture(path_capture)
+    for start in (0, 2):
+        fast = dataclasses.replace(
+            cap, frames=[dataclasses.replace(f, stamp=None) for f in cap.frames[start::3]]
+        )
+        odo = odometry_poses(fast)
+        truth = kinematic_poses(fast)
+        assert odo.failed, "a sweep this fast should lose pairs"
+        for a, b in itertools.pairwise([f.id for f in fast.frames]):
+            if b in odo.failed:
+                continue
+            step = np.linalg.inv(odo.poses[a]) @ odo.poses[b]
+            et, er = fr.pose_error(step, np.linalg.inv(truth[a]) @ truth[b])
+            assert et < 0.005 and np.degrees(er) < 1.0, (start, b, et, np.degrees(er))
 
 
 def test_odometry_across_a_gap_fuses_the_longest_linked_run(
@@ -268,6 +293,26 @@ def test_odometry_across_a_gap_fuses_the_longest_linked_run(
     assert len(skipped) == 40 - n
     assert all(why.startswith("odometry: not linked") for why in skipped.values()), skipped
     assert report["evaluation"]["precision@5mm"] > 0.9, report["evaluation"]
+
+
+def test_odometry_that_links_too_few_frames_is_refused_before_writing(
+    vine_views: VineViews, tmp_path: Path
+) -> None:
+    """Two views from one place, then three from elsewhere on the vine (no video between them):
+    odometry links two frames, fewer than a fused surface needs (`odometry.MIN_RUN_FRAMES`);
+    the reconstruction says so and writes no twin."""
+    from vinetwin.capture.folder import write_capture
+    from vinetwin.reconstruct.pipeline import ReconstructConfig, reconstruct
+
+    twin = vine_views.twin
+    grey = np.full((twin.camera.height, twin.camera.width, 3), 128, np.uint8)
+    views = [(twin.poses[0], 11), (twin.poses[0], 12), (twin.poses[2], 13), (twin.poses[4], 14),
+             (twin.poses[1], 15)]  # fmt: skip
+    frames = [(grey, vine_views.depth(p.T_vine_camera, seed), None) for p, seed in views]
+    cap = write_capture(tmp_path / "cap", twin.camera, frames)
+    with pytest.raises(CaptureError, match="odometry linked at most 2 consecutive frames of 5"):
+        reconstruct(cap, tmp_path / "vine.twin", ReconstructConfig(poses="odometry"))
+    assert not (tmp_path / "vine.twin").exists()
 
 
 def test_aligning_poses_on_a_line_recovers_the_rotation_about_it() -> None:

@@ -52,7 +52,7 @@ def reconstruct(
     F-scores under `report["evaluation"]`. Returns the report, also written to `json_path`."""
     import numpy as np
 
-    from vinetwin.capture.folder import read_capture
+    from vinetwin.capture.folder import CaptureError, read_capture
     from vinetwin.mesh import load_mesh
     from vinetwin.reconstruct.fusion import FusionConfig, evaluate, fuse, kinematic_poses, observed
     from vinetwin.twin.model import TWIN_FILE, Twin
@@ -68,11 +68,18 @@ def reconstruct(
     pose_report: dict[str, object] = {}
     not_fused: dict[str, str] = {}
     if cfg.poses == "odometry":
-        from vinetwin.reconstruct.odometry import odometry_poses
+        from vinetwin.reconstruct.odometry import MIN_RUN_FRAMES, odometry_poses
         from vinetwin.reconstruct.sfm import align_to
 
         odo = odometry_poses(cap)
         run = odo.longest_run
+        if len(run) < MIN_RUN_FRAMES:
+            raise CaptureError(
+                f"{capture}: odometry linked at most {len(run)} consecutive frames of "
+                f"{len(cap.frames)} ({len(odo.failed)} pairs did not align): the capture is not "
+                "video-like (frames a few centimetres and degrees apart, most of the view within "
+                "0.5 m); choose --poses kinematics or colmap"
+            )
         # only the longest run of linked frames: a frame after a failed pair is placed by a
         # guess, and so is every frame chained to it
         poses = {k: odo.poses[k] for k in run}
