@@ -235,8 +235,9 @@ def test_depth_odometry_bridges_dropped_frames_or_names_them(path_capture: Path)
 
 def test_depth_odometry_on_a_sweep_too_fast_keeps_only_right_pairs(path_capture: Path) -> None:
     """Every third frame of the sweep (steps of 9-25 cm, views that barely overlap, no stamps):
-    most pairs fail and are named; a pair that is kept is right, within 5 mm / 1 deg of the true
-    motion. Measured with the seeded noise: without the backwards check
+    most pairs fail and are named (or all do, and odometry says so: one start in one of 13 noise
+    streams); a pair that is kept is right, within 5 mm / 1 deg of the true motion. Measured
+    with the seeded noise: without the backwards check
     (`odometry.CONSISTENCY_TRANSLATION`) two pairs were kept 217 mm / 25 deg and 204 mm / 21 deg
     off (starting at frames 0 and 2); with it none, and 12 and 7 of 16 and 15 pairs failed."""
     from vinetwin import frames as fr
@@ -247,7 +248,11 @@ def test_depth_odometry_on_a_sweep_too_fast_keeps_only_right_pairs(path_capture:
         fast = dataclasses.replace(
             cap, frames=[dataclasses.replace(f, stamp=None) for f in cap.frames[start::3]]
         )
-        odo = odometry_poses(fast)
+        try:
+            odo = odometry_poses(fast)
+        except CaptureError as exc:  # no pair kept: none wrong either
+            assert "odometry aligned no frame pair" in str(exc)
+            continue
         truth = kinematic_poses(fast)
         assert odo.failed, "a sweep this fast should lose pairs"
         for a, b in itertools.pairwise([f.id for f in fast.frames]):
