@@ -11,13 +11,15 @@ capture (frames a few centimetres and degrees apart).
 
 A pair that does not align from there (the sweep sped up or turned: a start several centimetres
 off) is registered again by the servo's wide search (`registration.search`, from hypotheses
-`SEARCH_TRANSLATION` / `SEARCH_ROTATION` around the same prediction) and reported as searched.
-After a searched or failed pair, a pair whose own guess fails is tried from the last step
-tracking found. Each answer is checked backwards (the earlier frame registered onto the later
-one from its inverse: `CONSISTENCY_TRANSLATION`). A pair none of these places (or the search
-places ambiguously) keeps the guess and is reported as failed: it starts a new run (`OdometryResult.runs`), since its pose relative
-to the frames before it is a guess, and the reconstruction fuses only the longest run. Poses come
-out in the first frame's camera frame, metric; the drift grows with the path length.
+`SEARCH_TRANSLATION` / `SEARCH_ROTATION` around the same prediction, and after a failed pair
+also around standing still) and reported as searched. After a searched or failed pair, a pair
+whose own guess fails is tried from the last step tracking found. Each answer is checked
+backwards (the earlier frame registered onto the later one from its inverse:
+`CONSISTENCY_TRANSLATION`). A pair none of these places (or the search places ambiguously)
+keeps the guess and is reported as failed: it starts a new run (`OdometryResult.runs`), since
+its pose relative to the frames before it is a guess, and the reconstruction fuses only the
+longest run. Poses come out in the first frame's camera frame, metric; the drift grows with the
+path length.
 """
 
 from __future__ import annotations
@@ -127,10 +129,18 @@ def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None)
             kept = not why_not(r)
         step_tracked = kept
         if not step_tracked:
-            found = WideSearch(clouds[k - 1]).align(
+            search = WideSearch(clouds[k - 1])
+            found = search.align(
                 clouds[k], guess, translation=SEARCH_TRANSLATION, rotation=SEARCH_ROTATION,
                 accept=why_not,
             )  # fmt: skip
+            if found.best is None and failed and failed[-1] == capture.frames[k - 1].id:
+                # after a failed pair the guess carries the motion from before the gap, which a
+                # sweep that turned there no longer has: also search around standing still
+                found = search.align(
+                    clouds[k], np.eye(4), translation=SEARCH_TRANSLATION, rotation=SEARCH_ROTATION,
+                    accept=why_not,
+                )  # fmt: skip
             if found.best is not None:
                 r = found.best
                 kept = True
