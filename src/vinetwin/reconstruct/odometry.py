@@ -26,11 +26,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
 from vinetwin.capture.folder import Capture, CaptureError
-from vinetwin.cloud import PerceptionConfig, perceive
+from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.frames import Array, invert, pose_error, se3_exp, se3_log
 from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
 from vinetwin.registration.search import WideSearch
@@ -71,14 +72,25 @@ class OdometryResult:
     searched: list[str] = field(default_factory=list)
     """Frames that tracking did not align to their predecessor and the wide search did."""
     seconds: float = 0.0
-    runs: list[list[str]] = field(default_factory=list)
-    """The frames in runs linked by aligned pairs: a failed frame starts a new run, since its
-    pose relative to the frames before it is a guess. `longest_run` is what can be fused."""
+
+    @property
+    def runs(self) -> list[list[str]]:
+        """The frames (in capture order, as `poses` holds them) in runs linked by aligned pairs:
+        a failed frame starts a new run, since its pose relative to the frames before it is a
+        guess. `longest_run` is what can be fused."""
+        failed = set(self.failed)
+        runs: list[list[str]] = []
+        for fid in self.poses:
+            if not runs or fid in failed:
+                runs.append([])
+            runs[-1].append(fid)
+        return runs
 
     @property
     def longest_run(self) -> list[str]:
         """The longest run (the first of equals)."""
-        return max(self.runs, key=len) if self.runs else []
+        runs = self.runs
+        return max(runs, key=len) if runs else []
 
 
 def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None) -> OdometryResult:
@@ -104,21 +116,7 @@ def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None)
         fid = capture.frames[k].id
         guess = _prediction(step, capture, k)
         icp, icp_next = icp_next, ICP(clouds[k], cfg)  # this frame's is the next pair's
-
-        def why_not(r: ICPResult, k: int = k, back: ICP = icp_next) -> str:
-            """Why the pair's answer is not kept ("" when it is)."""
-            if not r.converged:
-                return f"ICP failed: {r.reason}"
-            if r.overlap < MIN_OVERLAP:
-                return f"overlap {r.overlap:.2f} < {MIN_OVERLAP}"
-            b = back.align(clouds[k - 1], invert(r.T_ref_cur))
-            dt, dr = pose_error(b.T_ref_cur @ r.T_ref_cur, np.eye(4))
-            if not b.converged:
-                return f"backwards, ICP failed: {b.reason}"
-            if dt > CONSISTENCY_TRANSLATION or dr > CONSISTENCY_ROTATION:
-                return f"backwards, {1000 * dt:.1f} mm / {np.degrees(dr):.2f} deg off"
-            return ""
-
+        why_not = partial(_refusal, backwards=icp_next, earlier=clouds[k - 1])
         r = icp.align(clouds[k], guess)
         kept = not why_not(r)
         if not kept and not step_tracked:
@@ -156,12 +154,24 @@ def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None)
         poses[fid] = T.copy()
     if len(failed) == len(clouds) - 1:
         raise CaptureError(f"{capture.root}: odometry aligned no frame pair")
-    runs: list[list[str]] = []
-    for f in capture.frames:
-        if not runs or f.id in failed:
-            runs.append([])
-        runs[-1].append(f.id)
-    return OdometryResult(poses, failed, searched, time.perf_counter() - t0, runs)
+    return OdometryResult(poses, failed, searched, time.perf_counter() - t0)
+
+
+def _refusal(r: ICPResult, backwards: ICP, earlier: Cloud) -> str:
+    """Why a pair's answer is not kept ("" when it is): ICP's failure, too little overlap, or
+    the earlier frame registered onto the later one (`backwards`, over the later frame's
+    cloud) from the answer's inverse not landing back within the consistency limits."""
+    if not r.converged:
+        return f"ICP failed: {r.reason}"
+    if r.overlap < MIN_OVERLAP:
+        return f"overlap {r.overlap:.2f} < {MIN_OVERLAP}"
+    b = backwards.align(earlier, invert(r.T_ref_cur))
+    if not b.converged:
+        return f"backwards, ICP failed: {b.reason}"
+    dt, dr = pose_error(b.T_ref_cur @ r.T_ref_cur, np.eye(4))
+    if dt > CONSISTENCY_TRANSLATION or dr > CONSISTENCY_ROTATION:
+        return f"backwards, {1000 * dt:.1f} mm / {np.degrees(dr):.2f} deg off"
+    return ""
 
 
 def _prediction(step: Array, capture: Capture, k: int) -> Array:
