@@ -18,8 +18,20 @@ click:
 - idle: from the click to the page's next animation frame after that, so past the frame that
   draws the preview (the page updates the panel's text before it draws the 3D view): the
   goal's measure;
+- drawn: on the page's own clock, from the input (the pointer press's event time) to the end of
+  the first render of the 3D view after the status line changed, waited for on the GPU
+  (`readPixels` right after it): when the preview's pixels are drawn, without the harness's
+  round trips to Python. Needs viser's end-to-end test hook (`window.__viserMutable`); "-"
+  without it;
 - the page's frame time (median interval of `requestAnimationFrame` while nothing changes;
   viser draws the 3D view on demand, so this is not the cost of drawing it).
+
+`--via message` sends each click's message from a script in the page (the message viser's page
+sends on the pointer's release, with the ray of the warm-up click turned by about 0.1 deg)
+instead of pressing the mouse: no pointer events, so none of the frames viser's page draws for
+the pointer's press and release (its camera controls ask for one). It measures what the page
+would take if its pointer handling drew nothing: a bound on what a change to viser's page
+could gain, not what a person gets. The drawn time then starts at the script's send.
 
 Clicks come `--pause` seconds (default 1) after the last one's preview, as a person looks at
 each preview before clicking again; with `--pause 0` a click comes while the page is still
@@ -36,7 +48,7 @@ with the WebGL renderer the page reported. `--gl` picks how the page draws WebGL
 (`vinetwin.web.browser.GL_ARGS`): Chromium's SwiftShader (the default, as in the tests) or the
 machine's Mesa llvmpipe through EGL. Timings are of this machine, shared with whatever else runs on it.
 
-    .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--pause 1] [--shading fast full] [--display-faces 60000 0] [--gl swiftshader|llvmpipe] [--json out.json]
+    .venv/bin/python benchmarks/web.py [--twin TWIN] [--clicks 15] [--pause 1] [--shading fast full] [--display-faces 60000 0] [--gl swiftshader|llvmpipe] [--via pointer|message] [--json out.json]
 """
 
 from __future__ import annotations
@@ -79,6 +91,47 @@ def _status_text(page: Any) -> str:
     return str(page.evaluate(STATUS_JS))
 
 
+#: In the page: `window.__vt` times each click on the page's clock. `input` is the pointer
+#: press's event time on the canvas (or the script's send, `window.__vtSend`); `status` is when
+#: the status line changed; `drawn` is the end of the first render of the 3D view after that,
+#: with the GPU's work waited for (`readPixels`). False when viser's test hook is missing.
+PAGE_CLOCK_JS = f"""() => {{
+    const M = window.__viserMutable;
+    if (!M || !M.scene || !M.canvas || !M.sendMessage) return false;
+    const canvas = M.canvas, gl = canvas.getContext('webgl2') || canvas.getContext('webgl');
+    if (!gl) return false;
+    const status = {STATUS_JS};
+    let last = status(), waiting = false;
+    const px = new Uint8Array(4);
+    window.__vt = {{input: null, status: null, drawn: null}};
+    window.addEventListener('pointerdown', (e) => {{
+        if (e.target === canvas) window.__vt = {{input: e.timeStamp, status: null, drawn: null}};
+    }}, true);
+    window.__vtSend = (origin, direction) => {{
+        window.__vt = {{input: performance.now(), status: null, drawn: null}};
+        M.sendMessage({{type: 'ScenePointerMessage', event_type: 'click', ray_origin: origin,
+                       ray_direction: direction, screen_pos: [[0.5, 0.5]], modifier: null}});
+    }};
+    new MutationObserver(() => {{
+        const now = status();
+        if (now === last) return;
+        last = now;
+        if (window.__vt.input !== null && window.__vt.status === null) {{
+            window.__vt.status = performance.now(); waiting = true;
+        }}
+    }}).observe(document.body, {{subtree: true, childList: true, characterData: true}});
+    const after = M.scene.onAfterRender;
+    M.scene.onAfterRender = function (...args) {{
+        if (after) after.apply(this, args);
+        if (!waiting) return;
+        waiting = false;
+        gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+        window.__vt.drawn = performance.now();
+    }};
+    return true;
+}}"""
+
+
 def run(
     twin_dir: Path,
     clicks: int,
@@ -86,6 +139,7 @@ def run(
     config: WebConfig,
     gl: Gl = "swiftshader",
     pause: float = 1.0,
+    via: str = "pointer",
 ) -> dict[str, Any]:
     from playwright.sync_api import TimeoutError as PlaywrightTimeout
     from playwright.sync_api import sync_playwright
@@ -98,12 +152,15 @@ def run(
     browser_ms: list[float] = []
     idle_ms: list[float] = []
     arrive_ms: list[float] = []  # the click's trip: Playwright's click to the handler's start
+    drawn_ms: list[float] = []  # on the page's clock (`PAGE_CLOCK_JS`)
     arrivals: list[float] = []
+    rays: list[tuple[list[float], list[float]]] = []  # each click's ray, as the app got it
     click = app.session.click
 
-    def timed_click(*a: Any, **k: Any) -> Any:
+    def timed_click(origin: Any, direction: Any, *a: Any, **k: Any) -> Any:
         arrivals.append(time.perf_counter())
-        return click(*a, **k)
+        rays.append(([float(x) for x in origin], [float(x) for x in direction]))
+        return click(origin, direction, *a, **k)
 
     app.session.click = timed_click  # type: ignore[method-assign]
     missed = 0
@@ -122,6 +179,9 @@ def run(
             if not app.wait_ready():
                 raise SystemExit("the web app's warm-up did not finish in 120 s")
             renderer = str(page.evaluate(RENDERER_JS))
+            page_clock = bool(page.evaluate(PAGE_CLOCK_JS))
+            if via == "message" and not page_clock:
+                raise SystemExit("--via message needs viser's test hook (window.__viserMutable)")
             box = page.locator("canvas").first.bounding_box()
             assert box is not None
             cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
@@ -130,7 +190,15 @@ def run(
                 latency_before = app.last_latency
                 dx, dy = rng.uniform(-2, 2, 2) if k else (0.0, 0.0)
                 t0 = time.perf_counter()
-                page.mouse.click(cx + dx, cy + dy)
+                if via == "message" and k:  # the warm-up click's ray, turned by about 0.1 deg
+                    origin, direction = rays[0]
+                    d = np.asarray(direction) + rng.normal(0.0, 0.002, 3)
+                    page.evaluate(
+                        "([o, d]) => window.__vtSend(o, d)",
+                        [origin, (d / np.linalg.norm(d)).tolist()],
+                    )
+                else:
+                    page.mouse.click(cx + dx, cy + dy)
                 seen = False
                 deadline = t0 + 10.0
                 try:  # polled inside the page at each frame
@@ -158,6 +226,9 @@ def run(
                     missed += int(k > 0)  # the warm-up click is not one of the `clicks`
                     continue
                 if k:
+                    vt = page.evaluate("() => window.__vt") if page_clock else None
+                    if vt and vt["drawn"] is not None and vt["input"] is not None:
+                        drawn_ms.append(float(vt["drawn"]) - float(vt["input"]))
                     browser_ms.append(1000 * elapsed)
                     idle_ms.append(1000 * idle)
                     server_ms.append(1000 * app.last_latency)
@@ -182,6 +253,7 @@ def run(
         "shading": config.shading,
         "display_faces": config.display_faces,
         "pause_s": pause,
+        "via": via,
         "drawn_faces": app.vine_faces,
         "renderer": renderer,
         "measured": len(browser_ms),
@@ -190,10 +262,12 @@ def run(
         "server_ms": stats(server_ms),
         "browser_ms": stats(browser_ms),
         "idle_ms": stats(idle_ms),
+        "drawn_ms": stats(drawn_ms),
         "browser_frame_ms": frame_ms,
         "server_samples_ms": server_ms,
         "browser_samples_ms": browser_ms,
         "idle_samples_ms": idle_ms,
+        "drawn_samples_ms": drawn_ms,
     }
 
 
@@ -213,6 +287,10 @@ def main() -> None:
     ap.add_argument("--pause", type=float, default=1.0,
                     help="seconds between a click's preview and the next click (0: the next "
                          "click comes while the page is still drawing the last one's frames)")  # fmt: skip
+    ap.add_argument("--via", default="pointer", choices=["pointer", "message"],
+                    help="how a click reaches the app: the mouse, or the click's message sent by "
+                         "a script in the page (no pointer events: what viser's page would take "
+                         "without the frames it draws for them)")  # fmt: skip
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
     if not CHROMIUM.exists():
@@ -225,13 +303,15 @@ def main() -> None:
                 shutil.copytree(args.twin, twin_dir)
                 key = shading if len(args.display_faces) == 1 else f"{shading}/{faces}"
                 cfg = WebConfig(shading=shading, display_faces=faces)
-                runs[key] = run(twin_dir, args.clicks, args.seed, cfg, args.gl, args.pause)
+                runs[key] = run(
+                    twin_dir, args.clicks, args.seed, cfg, args.gl, args.pause, args.via
+                )
     print(f"web click to preview, twin {args.twin.name}, {args.clicks} clicks per shading, "
           f"{args.pause:g} s apart, goal {GOAL_MS:.0f} ms; median / p90 ms (missed: clicks "
           f"that hit no cane)")  # fmt: skip
-    print(f"WebGL ({args.gl}): {next(iter(runs.values()))['renderer']}")
-    print(f"{'shading':14} {'drawn':>7} {'arrive':>12} {'server':>12} {'page':>12} {'idle':>12} "
-          f"{'missed':>7}")  # fmt: skip
+    print(f"WebGL ({args.gl}): {next(iter(runs.values()))['renderer']}; clicks via {args.via}")
+    print(f"{'shading':14} {'faces':>7} {'arrive':>12} {'server':>12} {'page':>12} {'idle':>12} "
+          f"{'drawn':>12} {'missed':>7}")  # fmt: skip
 
     def cell(s: dict[str, float | None]) -> str:
         med = "-" if s["median"] is None else f"{s['median']:.0f}"
@@ -241,9 +321,11 @@ def main() -> None:
     for shading, out in runs.items():
         print(f"{shading:14} {out['drawn_faces']:>7} {cell(out['arrive_ms']):>12} "
               f"{cell(out['server_ms']):>12} "
-              f"{cell(out['browser_ms']):>12} {cell(out['idle_ms']):>12} {out['missed']:>7}")  # fmt: skip
+              f"{cell(out['browser_ms']):>12} {cell(out['idle_ms']):>12} "
+              f"{cell(out['drawn_ms']):>12} {out['missed']:>7}")  # fmt: skip
     write_json(args.json, {"twin": args.twin.name, "clicks": args.clicks, "goal_ms": GOAL_MS,
-                           "gl": args.gl, "pause_s": args.pause, "runs": runs})  # fmt: skip
+                           "gl": args.gl, "pause_s": args.pause, "via": args.via,
+                           "runs": runs})  # fmt: skip
 
 
 if __name__ == "__main__":

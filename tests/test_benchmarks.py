@@ -133,10 +133,23 @@ def test_web_benchmark_quick(tmp_path: Path) -> None:
     for run in data["runs"].values():
         assert "SwiftShader" in run["renderer"]  # what --gl asked for, as the page reports it
         assert run["measured"] + run["missed"] == 2 and run["measured"] >= 1, proc.stdout[-3000:]
-        for part in ("arrive_ms", "server_ms", "browser_ms"):
+        for part in ("arrive_ms", "server_ms", "browser_ms", "drawn_ms"):
             assert run[part]["median"] > 0
         assert run["browser_ms"]["median"] >= run["server_ms"]["median"]
+        # the page's clock (viser's test hook is there): the input to the preview's frame
+        # drawn holds the server's part
+        assert run["via"] == "pointer" and run["drawn_ms"]["median"] >= run["server_ms"]["median"]
     assert "click to preview" in proc.stdout and "full" in proc.stdout
+    # clicks sent as messages by a script in the page, without the pointer: they place cut
+    # points like the mouse's
+    proc, data = _quick(
+        "web.py", tmp_path / "msg.json", "--clicks", "2", "--pause", "0.2", "--shading", "fast",
+        "--via", "message",
+    )  # fmt: skip
+    run = data["runs"]["fast"]
+    assert data["via"] == run["via"] == "message"
+    assert run["measured"] == 2 and run["missed"] == 0, proc.stdout[-3000:]
+    assert run["drawn_ms"]["median"] >= run["server_ms"]["median"] > 0
 
 
 def test_perception_benchmark_quick(tmp_path: Path) -> None:
