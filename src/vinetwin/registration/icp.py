@@ -155,10 +155,10 @@ class ICPConfig:
     """A result that turned more than this (rad; 45 deg) from its initial guess is a failure
     ("turned ... from its initial guess"), whatever its overlap: a local registration that far
     from its start has left any basin it can be trusted in. Measured on the sample's views from
-    5 cm / 10 deg (symmetric, coarse to fine, 16 D405 noise streams): right answers turned
-    9.9-10.1 deg; two false convergences that `min_overlap` let through (60% of the smaller
-    cloud paired, 31-33% of the reference covered, 78-88 mm / 75-78 deg from the truth) turned
-    68.5 and 72 deg. The paper's largest start (Tables 1 and 2) is 0.568 rad (32.5 deg) from
+    5 cm / 10 deg (symmetric, coarse to fine, D405 noise streams 1-4): right answers turned
+    9.9-10.1 deg; the two false convergences among them, which `min_overlap` let through (60%
+    of the smaller cloud paired, 31-33% of the reference covered, 78-88 mm / 75-78 deg from the
+    truth), turned 68.5 and 72 deg. The paper's largest start (Tables 1 and 2) is 0.568 rad (32.5 deg) from
     the goal. 0: no check."""
     huber_delta: float = 0.0
     """LM only: Huber kernel width (m); 0 disables the robust kernel."""
