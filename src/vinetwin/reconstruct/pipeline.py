@@ -80,14 +80,16 @@ def reconstruct(
                 "video-like (frames a few centimetres and degrees apart, most of the view within "
                 "0.5 m); choose --poses kinematics or colmap"
             )
-        # only the longest run of linked frames: a frame after a failed pair is placed by a
-        # guess, and so is every frame chained to it
-        poses = {k: odo.poses[k] for k in run}
+        # only the linked frames (the longest run and the runs joined to it): a frame after a
+        # failed pair is placed by a guess, and so is every frame chained to it, until joined
+        linked = odo.linked
+        poses = {k: odo.poses[k] for k in linked}
         if cap.has_poses:
             poses = align_to(poses, kinematic_poses(cap))
         pose_report = {
             "failed_pairs": odo.failed, "searched_pairs": odo.searched, "seconds": odo.seconds,
             "runs": [[r[0], r[-1], len(r)] for r in odo.runs],
+            "joined_runs": odo.joined, "runs_not_joined": odo.not_joined,
         }  # fmt: skip
         log.info(
             "odometry over %d frames in %.1f s%s%s", len(cap.frames), odo.seconds,
@@ -95,11 +97,19 @@ def reconstruct(
             f"; pairs that did not align: {', '.join(odo.failed)}" if odo.failed else "",
         )  # fmt: skip
         if len(odo.runs) > 1:
-            log.warning(
-                "odometry linked %d runs of frames; fusing the longest, %s to %s (%d of %d "
-                "frames): the others' poses relative to it are unknown",
-                len(odo.runs), run[0], run[-1], len(run), len(cap.frames),
-            )  # fmt: skip
+            for first, fitness in odo.joined.items():
+                log.info(
+                    "odometry: the run from %s joined to the longest by global registration "
+                    "(fitness %.2f)", first, fitness,
+                )  # fmt: skip
+            for first, why in odo.not_joined.items():
+                log.warning("odometry: the run from %s was not joined: %s", first, why)
+            if len(linked) < len(cap.frames):
+                log.warning(
+                    "odometry linked %d runs of frames; fusing %d of %d frames (the longest run, "
+                    "%s to %s, and %d joined to it): the others' poses relative to it are unknown",
+                    len(odo.runs), len(linked), len(cap.frames), run[0], run[-1], len(odo.joined),
+                )  # fmt: skip
             skip = f"odometry: not linked to the run fused ({run[0]} to {run[-1]})"
             not_fused = {f.id: skip for f in cap.frames if f.id not in poses}
     elif cfg.poses == "colmap":
