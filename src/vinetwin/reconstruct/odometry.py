@@ -34,9 +34,11 @@ from typing import Any
 
 import numpy as np
 
+from vinetwin import _lazy
 from vinetwin.capture.folder import Capture, CaptureError
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
-from vinetwin.frames import Array, invert, pose_error, se3_exp, se3_log
+from vinetwin.frames import Array, invert, pose_error, se3_exp, se3_log, transform_points
+from vinetwin.registration.features import fpfh, ransac_proposal
 from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
 from vinetwin.registration.search import WideSearch
 
@@ -117,12 +119,8 @@ class OdometryResult:
     def linked(self) -> list[str]:
         """The frames whose poses relate: the longest run and the runs joined to it, in
         capture order. What the reconstruction fuses."""
-        main = self.longest_run
-        keep = set(main)
-        for run in self.runs:
-            if run and run[0] in self.joined:
-                keep.update(run)
-        return [fid for fid in self.poses if fid in keep]
+        first = self.longest_run[:1]
+        return [f for r in self.runs if r[:1] == first or r[0] in self.joined for f in r]
 
 
 def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None) -> OdometryResult:
@@ -200,17 +198,15 @@ def join_runs(odo: OdometryResult, clouds: dict[str, Cloud]) -> None:
     runs = odo.runs
     if len(runs) < 2:
         return
-    import open3d as o3d
-
-    main = max(runs, key=len)  # `longest_run`, from this list
+    main = odo.longest_run
     P0 = odo.poses[main[0]]
     merged = _merged(odo, clouds, main, invert(P0))
-    for run in sorted((r for r in runs if r is not main), key=len, reverse=True):
+    for run in sorted((r for r in runs if r[0] != main[0]), key=len, reverse=True):
         if len(run) < MIN_RUN_FRAMES:
             odo.not_joined[run[0]] = f"{len(run)} frames, fewer than {MIN_RUN_FRAMES}"
             continue
         own = _merged(odo, clouds, run, invert(odo.poses[run[0]]))
-        T, fitness, why = _global_registration(own, merged)
+        T, fitness, why = _global_registration(_pcd(own), _pcd(merged))
         if why:
             odo.not_joined[run[0]] = why
             continue
@@ -219,82 +215,65 @@ def join_runs(odo: OdometryResult, clouds: dict[str, Cloud]) -> None:
         for fid in run:
             odo.poses[fid] = to_main @ odo.poses[fid]
         odo.joined[run[0]] = fitness
-        pts = np.concatenate([np.asarray(merged.points), _transformed(own, T)])
-        merged = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(
-            JOIN_VOXEL
-        )
+        merged = _downsampled(np.concatenate([merged, transform_points(T, own)]))
 
 
-def _transformed(pc: Any, T: Array) -> np.ndarray:
-    p = np.asarray(pc.points)
-    return p @ T[:3, :3].T + T[:3, 3]
+def _downsampled(points: np.ndarray) -> np.ndarray:
+    """The points at `JOIN_VOXEL` (Open3D's grid, as the joins were measured with)."""
+    return np.asarray(_pcd(points).voxel_down_sample(JOIN_VOXEL).points)
 
 
-def _merged(odo: OdometryResult, clouds: dict[str, Cloud], run: list[str], T0: Array) -> Any:
+def _pcd(points: np.ndarray) -> Any:
+    o3d = _lazy.open3d()
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points)))
+
+
+def _merged(odo: OdometryResult, clouds: dict[str, Cloud], run: list[str], T0: Array) -> np.ndarray:
     """The run's clouds in one frame (`T0` @ each pose), at `JOIN_VOXEL`."""
-    import open3d as o3d
-
-    pts = []
-    for fid in run:
-        T = T0 @ odo.poses[fid]
-        pts.append(clouds[fid].points @ T[:3, :3].T + T[:3, 3])
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(pts)))
-    return pc.voxel_down_sample(JOIN_VOXEL)
+    pts = [transform_points(T0 @ odo.poses[fid], clouds[fid].points) for fid in run]
+    return _downsampled(np.concatenate(pts))
 
 
 def _global_registration(src: Any, dst: Any) -> tuple[Array, float, str]:
-    """T_dst_src by Open3D's FPFH + RANSAC (best of `JOIN_SEEDS` by refined fitness), refined by
-    point-to-plane ICP at `JOIN_VOXEL` then 2 mm, and checked: fitness at `JOIN_VOXEL` and the
-    backwards registration. Returns (T, fitness, "") or (T, fitness, why not)."""
-    import open3d as o3d
-
+    """T_dst_src by FPFH + RANSAC (`registration.features`; the best of `JOIN_SEEDS` seeds by
+    fitness after point-to-plane ICP at `JOIN_VOXEL`), refined at 2 mm, and checked: fitness at
+    `JOIN_VOXEL` and the backwards registration. Returns (T, fitness, why not; "" if kept)."""
+    o3d = _lazy.open3d()
     reg = o3d.pipelines.registration
     v = JOIN_VOXEL
-    feats = []
     for pc in (src, dst):
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * v, max_nn=30))
-        feats.append(
-            reg.compute_fpfh_feature(  # type: ignore[call-arg]  (the stub wants `indices`)
-                pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=100)
-            )
-        )
+    f_src, f_dst = fpfh(src, 5 * v), fpfh(dst, 5 * v)
     plane = reg.TransformationEstimationPointToPlane()
     best: tuple[float, Array] | None = None
     for seed in range(JOIN_SEEDS):
-        o3d.utility.random.seed(seed)
-        ransac = reg.registration_ransac_based_on_feature_matching(
-            src, dst, feats[0], feats[1], True, 1.5 * v,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-             reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
-            reg.RANSACConvergenceCriteria(100000, 0.999),
-        )  # fmt: skip
-        fine = reg.registration_icp(src, dst, v, ransac.transformation, plane)
+        T, _ = ransac_proposal(
+            src, dst, f_src, f_dst, reach=1.5 * v, iterations=100_000, seed=seed, mutual=True
+        )
+        fine = reg.registration_icp(src, dst, v, T, plane)
         if best is None or fine.fitness > best[0]:
             best = (float(fine.fitness), np.asarray(fine.transformation))
     assert best is not None
     fitness, T = best
     T = np.asarray(reg.registration_icp(src, dst, 0.002, T, plane).transformation)
     if fitness < JOIN_MIN_FITNESS:
-        return (
-            T,
-            fitness,
-            (
-                f"global registration paired {100 * fitness:.0f}% of its points within "
-                f"{1000 * v:.0f} mm (minimum {100 * JOIN_MIN_FITNESS:.0f}%)"
-            ),
+        why = (
+            f"global registration paired {100 * fitness:.0f}% of its points within "
+            f"{1000 * v:.0f} mm (minimum {100 * JOIN_MIN_FITNESS:.0f}%)"
         )
+        return T, fitness, why
     back = np.asarray(reg.registration_icp(dst, src, 0.002, invert(T), plane).transformation)
-    dt, dr = pose_error(invert(back), T)
+    off = _disagreement(T, back)
+    return T, fitness, f"the backwards registration disagreed by {off}" if off else ""
+
+
+def _disagreement(forward: Array, backward: Array) -> str:
+    """How far `backward` (registered the other way) is from undoing `forward`, when more than
+    `CONSISTENCY_TRANSLATION` / `CONSISTENCY_ROTATION` ("" within them)."""
+    dt, dr = pose_error(backward @ forward, np.eye(4))
     if dt > CONSISTENCY_TRANSLATION or dr > CONSISTENCY_ROTATION:
-        return (
-            T,
-            fitness,
-            (
-                f"the backwards registration disagreed by {1000 * dt:.1f} mm / {np.degrees(dr):.2f} deg"
-            ),
-        )
-    return T, fitness, ""
+        return f"{1000 * dt:.1f} mm / {np.degrees(dr):.2f} deg"
+    return ""
 
 
 def _refusal(r: ICPResult, backwards: ICP, earlier: Cloud) -> str:
@@ -308,10 +287,8 @@ def _refusal(r: ICPResult, backwards: ICP, earlier: Cloud) -> str:
     b = backwards.align(earlier, invert(r.T_ref_cur))
     if not b.converged:
         return f"backwards, ICP failed: {b.reason}"
-    dt, dr = pose_error(b.T_ref_cur @ r.T_ref_cur, np.eye(4))
-    if dt > CONSISTENCY_TRANSLATION or dr > CONSISTENCY_ROTATION:
-        return f"backwards, {1000 * dt:.1f} mm / {np.degrees(dr):.2f} deg off"
-    return ""
+    off = _disagreement(r.T_ref_cur, b.T_ref_cur)
+    return f"backwards, {off} off" if off else ""
 
 
 def _prediction(step: Array, capture: Capture, k: int) -> Array:

@@ -42,6 +42,7 @@ from vinetwin.camera import CameraModel
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, check_pose, make_pose, pose_error, so3_exp, transform_points
+from vinetwin.registration.features import fpfh, ransac_proposal
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -158,12 +159,6 @@ class ArrivalRegistration:
             p.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(normals))
         return p
 
-    def _features(self, pcd: Any) -> Any:
-        o3d = self._o3d
-        return o3d.pipelines.registration.compute_fpfh_feature(
-            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=self.config.feature_radius, max_nn=100)
-        )
-
     def expected_view(self, T_vine_camera: Array) -> Cloud:
         """The cloud the camera would see from `T_vine_camera` (camera frame): the twin rendered
         at the score resolution, through the perception chain."""
@@ -221,17 +216,13 @@ class ArrivalRegistration:
         src_d.orient_normals_towards_camera_location(believed[:3, 3])
         candidates = self._screen(src_pts, self.points[near], believed)
         if cfg.ransac_iterations > 0 and len(src_d.points) >= 10 and len(tgt_d.points) >= 10:
-            o3d.utility.random.seed(int(cfg.seed))
-            dist = 1.5 * cfg.voxel
-            ransac = reg.registration_ransac_based_on_feature_matching(
-                src_d, tgt_d, self._features(src_d), self._features(tgt_d), False, dist,
-                reg.TransformationEstimationPointToPoint(False), 3,
-                [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-                 reg.CorrespondenceCheckerBasedOnDistance(dist)],
-                reg.RANSACConvergenceCriteria(cfg.ransac_iterations, 0.999),
+            T, fitness = ransac_proposal(
+                src_d, tgt_d, fpfh(src_d, cfg.feature_radius), fpfh(tgt_d, cfg.feature_radius),
+                reach=1.5 * cfg.voxel, iterations=cfg.ransac_iterations, seed=cfg.seed,
+                mutual=False,
             )  # fmt: skip
-            if ransac.fitness > 0:
-                candidates.append(np.asarray(ransac.transformation))
+            if fitness > 0:
+                candidates.append(T)
         crit = reg.ICPConvergenceCriteria(max_iteration=30)
         plane = reg.TransformationEstimationPointToPlane()
         levels = (5 * cfg.voxel, 2 * cfg.voxel, cfg.voxel)
