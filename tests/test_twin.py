@@ -222,7 +222,7 @@ def test_crash_during_save_keeps_previous_file(twin: Twin, monkeypatch: pytest.M
     with pytest.raises(TwinError, match="disk full"):
         twin.save()
     assert twin.json_path.read_bytes() == before
-    assert [p.name for p in twin.root.iterdir() if p.name.endswith(".tmp")] == []
+    assert [p.name for p in twin.root.iterdir() if p.name.endswith((".tmp", ".vttmp"))] == []
 
 
 def test_orphan_temp_files_are_removed_and_live_ones_kept(tmp_path: Path) -> None:
@@ -238,22 +238,24 @@ def test_orphan_temp_files_are_removed_and_live_ones_kept(tmp_path: Path) -> Non
                           capture_output=True, text=True, check=True)  # fmt: skip
     host = _host_tag()
     names = {
-        "dead": f".p1.ply.{host}-{dead.stdout.strip()}.abc123.tmp",
-        "live": f".p2.ply.{host}-{os.getpid()}.def456.tmp",
-        "elsewhere": ".p3.ply.otherhost-1.ghi789.tmp",
-        "elsewhere_old": ".p4.ply.otherhost-1.jkl012.tmp",
-        "old_format_old": ".p5.ply.xyz.tmp",
+        "dead": f".p1.ply.vinetwin-{host}-{dead.stdout.strip()}.abc1230000.vttmp",
+        "live": f".p2.ply.vinetwin-{host}-{os.getpid()}.def4560000.vttmp",
+        "elsewhere": ".p3.ply.vinetwin-otherhost-1.0789abcdef.vttmp",
+        "elsewhere_old": ".p4.ply.vinetwin-otherhost-1.0123456789.vttmp",
+        "users_old": ".notes.tmp",  # not a name vinetwin makes: never removed, however old
+        "users_old_2": f".p5.ply.{host}-{dead.stdout.strip()}.abc123.tmp",
         "data": "p6.ply",
     }
     for n in names.values():
         (tmp_path / n).write_bytes(b"partial")
     old = time.time() - ORPHAN_AGE_S - 10
-    for k in ("elsewhere_old", "old_format_old"):
+    for k in ("elsewhere_old", "users_old", "users_old_2"):
         os.utime(tmp_path / names[k], (old, old))
     removed = sorted(p.name for p in remove_orphan_temp_files(tmp_path))
-    assert removed == sorted(names[k] for k in ("dead", "elsewhere_old", "old_format_old"))
+    assert removed == sorted(names[k] for k in ("dead", "elsewhere_old"))
     left = sorted(p.name for p in tmp_path.iterdir())
-    assert left == sorted(names[k] for k in ("live", "elsewhere", "data"))
+    keep = ("live", "elsewhere", "users_old", "users_old_2", "data")
+    assert left == sorted(names[k] for k in keep)
     assert remove_orphan_temp_files(tmp_path / "missing") == []
 
 

@@ -48,8 +48,44 @@ class JsonFields:
                 v = t.from_dict(v)
             elif isinstance(v, list) and typing.get_origin(t) is tuple:
                 v = _tuple(v)
+            _check_scalar(cls, f.name, v, t)
             out[f.name] = v
         return cls(**out)
+
+
+#: What a scalar field of each type accepts from JSON (a bool is no number here).
+_SCALARS: dict[type, tuple[type, ...]] = {
+    float: (int, float),
+    int: (int,),
+    bool: (bool,),
+    str: (str,),
+}
+
+
+def _check_scalar(cls: type, name: str, v: Any, t: Any) -> None:
+    """Raises InputError when a JSON value cannot be a scalar field's type (a profile file's
+    "0.5" or null for a number): named here rather than a TypeError deep in a check."""
+    if typing.get_origin(t) is tuple:
+        from vinetwin.errors import InputError
+
+        if not isinstance(v, tuple):
+            raise InputError(f"{cls.__name__}.{name} must be a list, got {v!r}")
+        args = typing.get_args(t)
+        for i, x in enumerate(v):
+            _check_scalar(
+                cls,
+                f"{name}[{i}]",
+                x,
+                args[0] if args[-1] is Ellipsis else args[min(i, len(args) - 1)],
+            )
+        return
+    accepted = _SCALARS.get(t) if isinstance(t, type) else None
+    if accepted is None:
+        return
+    if not isinstance(v, accepted) or (t is not bool and isinstance(v, bool)):
+        from vinetwin.errors import InputError
+
+        raise InputError(f"{cls.__name__}.{name} must be a {t.__name__}, got {v!r}")
 
 
 def _tuple(v: list[Any]) -> tuple[Any, ...]:

@@ -159,12 +159,15 @@ class Preview:
     """Depth renderer, as for export."""
     seed: int = 0
     """Base seed of the D405 noise."""
+    overwrite: bool = False
+    """Replace existing files at --out (refused otherwise)."""
 
     def run(self) -> None:
         from vinetwin.render.preview import preview_pose
         from vinetwin.twin.model import Twin
 
-        preview_pose(Twin.load(self.twin), self.pose, self.out, self.backend, self.seed)
+        preview_pose(Twin.load(self.twin), self.pose, self.out, self.backend, self.seed,
+                     self.overwrite)  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -183,12 +186,15 @@ class Campaign:
     cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
     force: bool = False
     """Run every run again, even those already in OUT/runs with the same inputs."""
+    overwrite: bool = False
+    """Replace existing files at --json (refused otherwise)."""
 
     def run(self) -> None:
         from vinetwin.sim.campaign import run_campaign
         from vinetwin.sim.report import print_tables
         from vinetwin.twin.model import Twin
 
+        refuse_json(self.json, self.overwrite)
         out = self.out or (self.twin / "campaign" / self.config.preset)
         data = with_progress("simulating", lambda progress: run_campaign(
             Twin.load(self.twin), self.config, out, progress,
@@ -207,10 +213,13 @@ class Validate:
     cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
     json: Path | None = None
     """Also write the summary here."""
+    overwrite: bool = False
+    """Replace existing files at --json (refused otherwise)."""
 
     def run(self) -> None:
         from vinetwin.sim.validate import validate_folder
 
+        refuse_json(self.json, self.overwrite)
         with_progress("validating", lambda progress: validate_folder(
             self.twin, self.config, progress, self.cluster.executor(self.config.workers),
             json_path=self.json, echo=print))  # fmt: skip
@@ -232,6 +241,8 @@ class ServoCmd:
     """Also write the frames, stamps and robot poses as a capture folder (replayable)."""
     mcap: Path | None = None
     """Also write the run as MCAP for Foxglove or RViz (a ROS 2 bag folder; docs/ros.md)."""
+    overwrite: bool = False
+    """Replace existing files at --log and --record (refused otherwise)."""
 
     def run(self) -> None:
         from vinetwin.servo.runner import run_pose
@@ -239,7 +250,8 @@ class ServoCmd:
         from vinetwin.twin.model import Twin
 
         summary, path = run_pose(Twin.load(self.twin), self.config, log_path=self.log,
-                                 record=self.record, simulator=simulated_session, mcap=self.mcap)  # fmt: skip
+                                 record=self.record, simulator=simulated_session, mcap=self.mcap,
+                                 overwrite=self.overwrite)  # fmt: skip
         print(f"{summary.describe()}\nlog: {path}")
 
 
@@ -274,11 +286,13 @@ class CheckReference:
     config: Annotated[CheckConfig, Nested] = field(default_factory=CheckConfig)
     out: Path | None = None
     """Folder for check.json and check.png (default TWIN/checks/POSE)."""
+    overwrite: bool = False
+    """Replace existing files at --out (refused otherwise)."""
 
     def run(self) -> None:
         from vinetwin.servo.check import run_check
 
-        check = run_check(self.twin, self.config, self.out)
+        check = run_check(self.twin, self.config, self.out, self.overwrite)
         print(check.describe())
         if not check.valid:
             raise SystemExit(1)
@@ -292,11 +306,14 @@ class ServoPlot:
     """One or more .jsonl logs."""
     out: Path = Path("servo-plots")
     """Folder for errors.png and trajectories.png."""
+    overwrite: bool = False
+    """Replace existing files at --out (refused otherwise)."""
 
     def run(self) -> None:
         from vinetwin.sim.report import plot_logs
 
-        print("wrote " + " and ".join(str(p) for p in plot_logs(list(self.logs), self.out)))
+        paths = plot_logs(list(self.logs), self.out, self.overwrite)
+        print("wrote " + " and ".join(str(p) for p in paths))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -357,7 +374,8 @@ class Reconstruct:
     """Twin folder to create (or update with --overwrite)."""
     config: Annotated[ReconstructConfig, Nested] = field(default_factory=ReconstructConfig)
     overwrite: bool = False
-    """Replace the mesh of an existing twin (its cut points and poses are kept)."""
+    """Replace the mesh of an existing twin (its cut points and poses are kept), and an
+    existing --json file."""
     ground_truth: Path | None = None
     """A twin folder or mesh file to evaluate against."""
     json: Path | None = None
@@ -366,6 +384,7 @@ class Reconstruct:
     def run(self) -> None:
         from vinetwin.reconstruct.pipeline import reconstruct
 
+        refuse_json(self.json, self.overwrite)
         with_progress("fusing frames", lambda progress: reconstruct(
             self.capture, self.twin, self.config, overwrite=self.overwrite,
             ground_truth=self.ground_truth, progress=progress, json_path=self.json))  # fmt: skip
@@ -404,8 +423,38 @@ class Demo:
         print_summary(Twin.load(dst))
         Export(twin=dst).run()
         first = Twin.load(dst).poses[0].id
-        Preview(twin=dst, pose=first, out=self.out / f"preview_{first}.png").run()
+        Preview(twin=dst, pose=first, out=self.out / f"preview_{first}.png", overwrite=True).run()
         log.info("demo done: references and preview in %s", self.out)
+
+
+def exit_status(exc: BaseException) -> int:
+    """The exit status of a command that raised `exc`, its error named on the log: 2 for a
+    refused input or a file that cannot be read or written, 130 for Ctrl-C (also when it
+    landed inside a compiled kernel); anything else is a bug, raised with its traceback."""
+    from vinetwin.errors import raise_if_interrupt
+
+    if isinstance(exc, SystemExit):  # --help, or tyro's named error for a refused value
+        return exc.code if isinstance(exc.code, int) else 2
+    if isinstance(exc, VinetwinError):
+        log.error("%s", exc)
+        return 2
+    if isinstance(exc, OSError):  # not a traceback
+        log.error("%s%s", f"{exc.filename}: " if exc.filename else "", exc.strerror or exc)
+        return 2
+    try:
+        raise_if_interrupt(exc)
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+    raise exc
+
+
+def refuse_json(path: Path | None, overwrite: bool) -> None:
+    """--json names a new file, or an old one with --overwrite: checked before the work."""
+    if path is not None:
+        from vinetwin.files import refuse_existing
+
+        refuse_existing(path, "--json", overwrite)
 
 
 COMMANDS: dict[str, type] = {
@@ -438,14 +487,8 @@ def main(argv: list[str] | None = None) -> int:
             description="vinetwin: reference clouds and digital twins for robotic vine pruning.",
         )
         cmd.run()
-    except VinetwinError as exc:
-        log.error("%s", exc)
-        return 2
-    except KeyboardInterrupt:
-        log.error("interrupted")
-        return 130
-    except SystemExit as exc:  # --help, or tyro's named error for a refused value
-        return exc.code if isinstance(exc.code, int) else 2
+    except BaseException as exc:
+        return exit_status(exc)
     return 0
 
 

@@ -47,6 +47,10 @@ class TwinVersionError(TwinError):
     """twin.json was written by a newer format version than this vinetwin can read."""
 
 
+class OutputError(VinetwinError):
+    """A file vinetwin writes cannot be written (a full disk, no permission); names the file."""
+
+
 class MeshError(VinetwinError):
     """A mesh is missing, unreadable, empty or holds non-finite vertices."""
 
@@ -62,3 +66,18 @@ class BackendUnavailable(VinetwinError):
         self.backend = backend
         self.reason = reason
         super().__init__(f"render backend '{backend}' is unavailable: {reason}")
+
+
+def raise_if_interrupt(exc: BaseException) -> None:
+    """Raises KeyboardInterrupt when `exc` is one, or was caused by one. Ctrl-C landing while a
+    compiled (numba) kernel runs comes out of the kernel's call as `SystemError: CPUDispatcher
+    (...) returned a result with an exception set`, the interrupt as its cause: every handler
+    that turns an exception into a failed job, a refused frame or a named failure calls this
+    first, so an interrupt always stops the run."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            raise KeyboardInterrupt from exc
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__

@@ -41,7 +41,7 @@ from typing import Any
 
 from vinetwin._config import JsonFields
 from vinetwin._faults import FAULT_VAR
-from vinetwin.errors import InputError, VinetwinError
+from vinetwin.errors import InputError, VinetwinError, raise_if_interrupt
 
 log = logging.getLogger(__name__)
 
@@ -168,6 +168,7 @@ def run_unordered(
             try:
                 yield Outcome(i, fn(job))
             except Exception as exc:  # one job's failure is reported, the others go on
+                raise_if_interrupt(exc)
                 yield Outcome(i, error=f"{type(exc).__name__}: {exc}")
         return
     with _worker_env(workers):
@@ -292,6 +293,7 @@ def _run_pool(
                 except BrokenProcessPool:
                     suspects.append(i)
                 except Exception as exc:
+                    raise_if_interrupt(exc)
                     yield Outcome(i, error=f"{type(exc).__name__}: {exc}")
             if suspects:
                 # a worker died and took the pool with it; which of the jobs in flight killed
@@ -330,6 +332,7 @@ def _run_alone(
                     break
                 log.warning("job %d: its worker died; running it again", i)
             except Exception as exc:
+                raise_if_interrupt(exc)
                 yield Outcome(i, error=f"{type(exc).__name__}: {exc}")
                 break
             finally:

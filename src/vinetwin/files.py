@@ -22,8 +22,12 @@ from typing import Any
 
 from vinetwin._faults import fault_point
 
-#: Temporary files of `atomic_write_bytes`: `.NAME.HOST-PID.RANDOM.tmp`.
-_TEMP_RE = re.compile(r"^\..+\.(?P<host>[A-Za-z0-9-]+)-(?P<pid>[0-9]+)\.[^.]+\.tmp$")
+#: Temporary files of `atomic_write_bytes`: `.NAME.vinetwin-HOST-PID.RANDOM.vttmp`, a name only
+#: vinetwin makes; the clean-up removes nothing else (a user's `.notes.tmp` stays).
+_TEMP_SUFFIX = ".vttmp"
+_TEMP_RE = re.compile(
+    r"^\..+\.vinetwin-(?P<host>[A-Za-z0-9-]+)-(?P<pid>[0-9]+)\.[0-9a-f]{10}\.vttmp$"
+)
 #: A temporary file this old is an orphan whoever wrote it (a write takes well under a second).
 ORPHAN_AGE_S = 3600.0
 
@@ -51,9 +55,9 @@ def atomic_write_bytes(path: Path, data: bytes, *, sync: bool = True) -> None:
         keep: int | None = path.stat().st_mode & 0o777
     except OSError:
         keep = None
-    prefix = f".{path.name}.{_host_tag()}-{os.getpid()}."
+    prefix = f".{path.name}.vinetwin-{_host_tag()}-{os.getpid()}."
     for _ in range(100):
-        tmp = path.parent / f"{prefix}{_TOKENS.getrandbits(40):010x}.tmp"
+        tmp = path.parent / f"{prefix}{_TOKENS.getrandbits(40):010x}{_TEMP_SUFFIX}"
         try:
             fd = os.open(tmp, _CREATE, 0o666)
             break
@@ -61,6 +65,18 @@ def atomic_write_bytes(path: Path, data: bytes, *, sync: bool = True) -> None:
             continue
     else:
         raise FileExistsError(f"{path.parent}: no free temporary name for {path.name}")
+    try:
+        _write_renamed(fd, tmp, path, data, keep, sync)
+    except OSError as exc:
+        if exc.filename is None and exc.strerror:  # os.write names no file: say where
+            exc.filename = str(path)
+        raise
+
+
+def _write_renamed(
+    fd: int, tmp: Path, path: Path, data: bytes, keep: int | None, sync: bool
+) -> None:
+    """`atomic_write_bytes`'s part after the temporary file is open: write, rename."""
     try:
         try:
             if keep is not None:
@@ -91,6 +107,16 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_TOKENS.seed)
 
 
+def save_figure(fig: Any, path: str | Path, dpi: int = 100) -> None:
+    """A matplotlib figure as a PNG at `path`, atomically (a full disk names the file and
+    leaves no half picture)."""
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    atomic_write_bytes(Path(path), buf.getvalue())
+
+
 def atomic_write_text(path: Path, text: str, *, sync: bool = True) -> None:
     atomic_write_bytes(path, text.encode("utf-8"), sync=sync)
 
@@ -109,6 +135,42 @@ def atomic_write_json(path: Path, data: Any, indent: int | None = 1) -> None:
     atomic_write_text(path, json.dumps(data, indent=indent, default=json_default) + "\n")
 
 
+def refuse_existing(path: str | Path, flag: str, overwrite: bool = False) -> Path:
+    """`path` as a Path, once it is known that writing there destroys nothing the user did not
+    ask to replace: an existing file (or a folder that is not empty) raises InputError naming
+    `flag` unless `overwrite`. A file where a folder goes, or the reverse, is refused anyway."""
+    from vinetwin.errors import InputError
+
+    path = Path(path)
+    if not overwrite and (path.is_file() or path.is_symlink()):
+        raise InputError(f"{flag} {path} exists; choose another name or pass --overwrite")
+    if not overwrite and path.is_dir() and any(path.iterdir()):
+        raise InputError(
+            f"{flag} {path} is a folder that is not empty; choose another or pass --overwrite"
+        )
+    return path
+
+
+def parse_json(text: str | bytes) -> Any:
+    """`json.loads`, whose every refusal is a ValueError: besides malformed JSON, an integer
+    of over 4300 digits (Python's own limit) and nesting deeper than the parser's recursion
+    (`[[[[...` 100 000 deep: a RecursionError) are named as such."""
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError("nested too deeply to read") from None
+
+
+def read_json(path: Path, error: type[Exception] = ValueError) -> Any:
+    """The JSON file at `path`; any failure to read or parse it (missing, unreadable, not
+    UTF-8, not JSON, too deep, too large a number) raises `error` naming the file and why."""
+    try:
+        return parse_json(Path(path).read_bytes())
+    except (OSError, ValueError) as exc:  # UnicodeDecodeError and JSONDecodeError included
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise error(f"{path}: cannot read it as JSON: {why}") from None
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)  # signal 0: only asks whether the process exists
@@ -123,19 +185,23 @@ def remove_orphan_temp_files(folder: Path) -> list[Path]:
     """Removes the temporary files that writers killed in the middle of `atomic_write_bytes`
     left in `folder` (a worker killed by the OOM killer, or terminated by a pool that broke
     while it was writing): those written on this machine by a process that is gone, and any
-    older than `ORPHAN_AGE_S`. Files being written by a live process are kept. Returns what
-    was removed."""
+    older than `ORPHAN_AGE_S`. Only names `atomic_write_bytes` makes (`_TEMP_RE`) are touched,
+    never a link, and never through one: a `folder` that is a symbolic link (a twin's
+    `references/` pointing elsewhere) is left alone. Files being written by a live process are
+    kept. Returns what was removed."""
     folder = Path(folder)
-    if not folder.is_dir():
+    if folder.is_symlink() or not folder.is_dir():
         return []
     host, now, removed = _host_tag(), time.time(), []
-    for p in folder.glob(".*.tmp"):
+    for p in folder.glob(f".*{_TEMP_SUFFIX}"):
         m = _TEMP_RE.match(p.name)
+        if m is None or p.is_symlink():
+            continue
         try:
-            old = now - p.stat().st_mtime > ORPHAN_AGE_S
+            old = now - p.lstat().st_mtime > ORPHAN_AGE_S
         except OSError:
             continue
-        dead = m is not None and m["host"] == host and not _pid_alive(int(m["pid"]))
+        dead = m["host"] == host and not _pid_alive(int(m["pid"]))
         if old or dead:
             with contextlib.suppress(OSError):
                 p.unlink()

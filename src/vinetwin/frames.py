@@ -7,6 +7,7 @@ part first (the order of the paper's PBVS error `e = (t, theta*u)`). Only numpy 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,21 @@ def as_points(points: Any, name: str = "points") -> Array:
     return arr
 
 
+def unit_vector(v: Any, name: str = "direction") -> Array:
+    """`v` (3 numbers) scaled to length 1; InputError when it is not finite or is zero. Scaled
+    by its largest component first, so that a huge direction ([1e308, 1e308, 0], whose plain
+    norm overflows to infinity) is still a direction."""
+    a = np.asarray(v, dtype=np.float64).reshape(3)
+    big = float(np.max(np.abs(a))) if np.all(np.isfinite(a)) else math.nan
+    if not (math.isfinite(big) and big > 0.0):
+        raise InputError(f"{name} must be a finite non-zero 3-vector, got {a.tolist()}")
+    a = a / big
+    n = float(np.linalg.norm(a))
+    if n < 1e-9:
+        raise InputError(f"{name} must be a finite non-zero 3-vector, got {a.tolist()}")
+    return a / n
+
+
 def check_pose(T: Any, name: str = "pose", atol: float = 1e-6) -> Array:
     """Validates a 4x4 rigid transform and returns it as float64.
 
@@ -43,6 +59,8 @@ def check_pose(T: Any, name: str = "pose", atol: float = 1e-6) -> Array:
     if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
         raise PoseError(f"{name} last row must be [0, 0, 0, 1], got {arr[3].tolist()}")
     R = arr[:3, :3]
+    if np.max(np.abs(R)) > 2.0:  # no rotation has such an entry (and R^T R would overflow)
+        raise PoseError(f"{name} rotation block is not a proper rotation (an entry above 1)")
     if not np.allclose(R.T @ R, np.eye(3), atol=max(atol, 1e-5)) or np.linalg.det(R) < 0:
         raise PoseError(f"{name} rotation block is not a proper rotation (R^T R != I or det < 0)")
     return arr

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from vinetwin._config import json_default
-from vinetwin.files import atomic_write_text, remove_orphan_temp_files
+from vinetwin.files import atomic_write_text, parse_json, remove_orphan_temp_files
 
 
 class JobStore:
@@ -56,8 +56,8 @@ class JobStore:
         """The result file of `name`, or None when it is missing, unreadable or of another
         format version."""
         try:
-            record = json.loads(self.path(name).read_text())
-        except (OSError, ValueError):
+            record = parse_json(self.path(name).read_bytes())
+        except (OSError, ValueError):  # missing, not UTF-8, not JSON, too deep: run it again
             return None
         if not isinstance(record, dict) or record.get(self.format_key) != self.version:
             return None

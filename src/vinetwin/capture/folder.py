@@ -28,7 +28,7 @@ import numpy.typing as npt
 
 from vinetwin.camera import CameraModel
 from vinetwin.errors import InputError
-from vinetwin.files import atomic_write_text
+from vinetwin.files import atomic_write_text, read_json
 from vinetwin.frames import Array, check_pose
 
 CAPTURE_FORMAT = "vinetwin-capture"
@@ -104,10 +104,26 @@ def read_capture(root: str | Path, check_frames: bool = True) -> Capture:
     meta_path = root / "capture.json"
     if not meta_path.exists():
         raise CaptureError(f"{root}: no capture.json here; is this a capture folder?")
+    meta = read_json(meta_path, CaptureError)
     try:
-        meta = json.loads(meta_path.read_text())
-    except ValueError as exc:
-        raise CaptureError(f"{meta_path}: not valid JSON: {exc}") from exc
+        cap = _capture_from(root, meta_path, meta)
+    except CaptureError:
+        raise
+    except InputError as exc:  # a pose that is not one: the file named
+        raise CaptureError(f"{meta_path}: {exc}") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:  # a field of a wrong type
+        raise CaptureError(f"{meta_path}: malformed: {type(exc).__name__}: {exc}") from None
+    if check_frames:
+        check_capture(cap)
+    return cap
+
+
+def _capture_from(root: Path, meta_path: Path, meta: Any) -> Capture:
+    """The capture that capture.json's content describes (frames not read)."""
+    if not isinstance(meta, dict):
+        raise CaptureError(
+            f"{meta_path}: a capture.json is a JSON object, got {type(meta).__name__}"
+        )
     if meta.get("format") != CAPTURE_FORMAT:
         raise CaptureError(
             f"{meta_path}: format must be '{CAPTURE_FORMAT}', got {meta.get('format')!r}"
@@ -147,10 +163,7 @@ def read_capture(root: str | Path, check_frames: bool = True) -> Capture:
         frames.append(Frame(fid, color, root / fm["depth"], T, stamp))
     if len(frames) < MIN_FRAMES:
         raise CaptureError(f"{root}: {len(frames)} frames; at least {MIN_FRAMES} are needed")
-    cap = Capture(root, camera, unit, frames, T_fc)
-    if check_frames:
-        check_capture(cap)
-    return cap
+    return Capture(root, camera, unit, frames, T_fc)
 
 
 def check_capture(cap: Capture) -> None:

@@ -33,7 +33,7 @@ import vinetwin
 from vinetwin._faults import fault_point
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import PerceptionConfig
-from vinetwin.errors import InputError, VinetwinError
+from vinetwin.errors import InputError, VinetwinError, raise_if_interrupt
 from vinetwin.executor import (
     ExecutorConfig,
     clear_worker_cache,
@@ -151,6 +151,7 @@ def _run_job(job: _Job) -> PoseResult:
             twin=job.twin,
         )  # fmt: skip
     except Exception as exc:  # isolate one pose's failure from the others
+        raise_if_interrupt(exc)  # Ctrl-C inside a kernel stops the export
         return PoseResult(
             job.pose_id,
             "failed",
@@ -328,6 +329,9 @@ def export_references(
         progress: called after each pose with (result, done, total).
     """
     t_start = time.perf_counter()
+    refs = twin.references_dir
+    if refs.is_symlink():  # said, not followed silently; its clean-up is skipped there
+        log.warning("%s is a symbolic link: the references are written to %s", refs, refs.resolve())
     skipped, jobs = plan_export(
         twin, pose_ids, backend=backend, seed=seed, sensor=sensor, force=force
     )
@@ -404,6 +408,8 @@ def export_twins(
     report and the folder the references went to."""
     from vinetwin.twin.model import find_twins
 
+    if not 0 <= seed < 2**32 or workers < 0:
+        raise InputError(f"seed must lie in [0, 2^32) and workers be >= 0, got {seed}, {workers}")
     roots = find_twins(path)
     sensor = SensorConfig(enabled=not clean)
     if len(roots) == 1:
@@ -435,22 +441,24 @@ def check_export_ok(report: ExportReport) -> None:
 def print_report(report: ExportReport, where: Path) -> None:
     """Prints one row per reference and a line of totals."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     several = len({r.twin for r in report.results}) > 1
     table = Table("pose", "status", "points", "seconds", "note")
-    for r in report.results:
+    for r in report.results:  # ids, paths and messages are printed as text, not markup
         table.add_row(
-            f"{Path(r.twin).name}/{r.pose_id}" if several else r.pose_id,
+            escape(f"{Path(r.twin).name}/{r.pose_id}" if several else r.pose_id),
             r.status,
             str(r.points) if r.status == "rendered" else "",
             f"{r.seconds:.2f}",
-            r.error or r.warning,
+            escape(r.error or r.warning),
         )
     con = Console()
     con.print(table)
     con.print(
         f"{report.count('rendered')} rendered, {report.count('skipped')} unchanged, "
         f"{report.count('failed')} failed in {report.seconds:.1f} s "
-        f"({report.executor}, {report.workers} worker{'s' * (report.workers != 1)}) -> {where}"
+        f"({report.executor}, {report.workers} worker{'s' * (report.workers != 1)}) -> {where}",
+        markup=False,
     )

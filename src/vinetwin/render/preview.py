@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vinetwin.errors import InputError
+from vinetwin.files import refuse_existing, save_figure
 from vinetwin.render.reference import Reference
 
 if TYPE_CHECKING:
@@ -19,7 +20,12 @@ log = logging.getLogger(__name__)
 
 
 def preview_pose(
-    twin: Twin, pose_id: str, out: str | Path, backend: str | None = None, seed: int = 0
+    twin: Twin,
+    pose_id: str,
+    out: str | Path,
+    backend: str | None = None,
+    seed: int = 0,
+    overwrite: bool = False,
 ) -> Reference:
     """Renders one pose's reference (the export's settings and noise seed) and writes its
     preview PNG to `out`; returns the reference. `backend` None or "auto": the one
@@ -33,6 +39,7 @@ def preview_pose(
         raise InputError(f"--out must name a .png file, got {out}")
     if out.exists() and out.is_dir():
         raise InputError(f"--out {out} is a folder; name a .png file")
+    refuse_existing(out, "--out", overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     pose = twin.pose(pose_id)
     mesh = twin.load_mesh()
@@ -87,5 +94,5 @@ def save_preview(ref: Reference, path: str | Path, title: str = "") -> None:
         fig.colorbar(sc, ax=axes[2], fraction=0.04, label="depth (m)")
     fig.suptitle(f"{title}  ({len(p)} points)")
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
+    save_figure(fig, path, 80)
     plt.close(fig)

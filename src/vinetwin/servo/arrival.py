@@ -40,7 +40,7 @@ import numpy as np
 from vinetwin import _lazy
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
-from vinetwin.errors import InputError
+from vinetwin.errors import InputError, raise_if_interrupt
 from vinetwin.frames import Array, check_pose, make_pose, pose_error, so3_exp, transform_points
 from vinetwin.registration.features import fpfh, ransac_proposal
 
@@ -196,6 +196,7 @@ class ArrivalRegistration:
         try:
             live = perceive(live_depth, self.camera, self.perception, normals=False)
         except Exception as exc:  # a malformed image is a named failure
+            raise_if_interrupt(exc)
             return fail(f"bad depth image: {exc}")
         if len(live) < 30:
             return fail(f"too few live points ({len(live)}): nothing to register")

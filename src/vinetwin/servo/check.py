@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 
 from vinetwin.cloud import Cloud, perceive
+from vinetwin.errors import InputError
+from vinetwin.files import save_figure
 from vinetwin.frames import Array, pose_error, transform_points
 from vinetwin.registration.icp import ICP, ICPConfig
 from vinetwin.servo.config import CheckConfig
@@ -167,7 +169,7 @@ def plot_check(
                  f"{check.correction_rad:.3f} rad)", fontsize=10)  # fmt: skip
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, 100)
     plt.close(fig)
     return path
 
@@ -204,14 +206,22 @@ def live_depths(twin: Twin, pose_id: str, config: CheckConfig) -> list[Any]:
     return out
 
 
-def run_check(twin_dir: Path, config: CheckConfig, out: Path | None = None) -> ReferenceCheck:
+def run_check(
+    twin_dir: Path, config: CheckConfig, out: Path | None = None, overwrite: bool = False
+) -> ReferenceCheck:
     """`vinetwin check-reference`: the frames, the check, `check.json` and `check.png` in `out`
-    (default TWIN/checks/POSE)."""
+    (default TWIN/checks/POSE, replaced at each check). A given `out` that is a file, or that
+    holds an earlier check, is refused before anything runs, unless `overwrite`."""
     import json
 
-    from vinetwin.files import atomic_write_text
+    from vinetwin.files import atomic_write_text, refuse_existing
     from vinetwin.servo.runner import reference_cloud
 
+    if out is not None:
+        if out.exists() and not out.is_dir():
+            raise InputError(f"--out {out} is a file; name a folder (check.json, check.png)")
+        for name in ("check.json", "check.png"):
+            refuse_existing(out / name, "--out", overwrite)
     twin = Twin.load(twin_dir)
     pose = twin.pose(config.pose) if config.pose else twin.poses[0]
     reference = reference_cloud(twin, pose.id)

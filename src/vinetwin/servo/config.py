@@ -38,14 +38,94 @@ VARIANTS: tuple[str, ...] = get_args(Variant)
 
 
 def check_finite(config: object, names: tuple[str, ...], positive: bool = False) -> None:
-    """Raises InputError naming the first of `names` that is not finite and > 0 (`positive`)
-    or >= 0: a limit that NaN, infinity or a negative number would switch off."""
+    """Raises InputError naming the first of `names` that is not a finite number > 0
+    (`positive`) or >= 0: a limit that NaN, infinity, a negative number or a string (a profile
+    file's "0.5") would switch off."""
     for name in names:
         v = getattr(config, name)
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise InputError(f"{name} must be a number, got {v!r}")
         if not (math.isfinite(v) and (v > 0 if positive else v >= 0)):
             raise InputError(
                 f"{name} must be {'positive' if positive else '>= 0'} and finite, got {v}"
             )
+
+
+def check_counts(config: object, names: tuple[str, ...], ceiling: int = 2**32) -> None:
+    """Raises InputError naming the first of `names` (seeds, counts of workers) that is not an
+    integer in [0, ceiling)."""
+    for name in names:
+        v = getattr(config, name)
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < ceiling:
+            raise InputError(f"{name} must be an integer in [0, {ceiling}), got {v!r}")
+
+
+def check_at_most(config: object, ceilings: dict[str, float], why: str) -> None:
+    """Raises InputError naming the first field of `ceilings` above its ceiling, and `why`."""
+    for name, ceiling in ceilings.items():
+        v = getattr(config, name)
+        if v > ceiling:
+            raise InputError(f"{name} {v:g} is above {ceiling:g} {why}")
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """The safe envelope of every setting that moves a robot while it servos near a vine,
+    declared once (`docs/hardware.md`, "The envelope"). A `Limits` above it is refused, naming
+    the envelope, unless `override_envelope` is set; nothing, override or not, goes above
+    `ARM_CEILING`. A gain or a stop time outside it is always refused."""
+
+    max_linear: float = 0.25
+    """m/s: the camera near canes, a person within reach. ISO 10218-1's reduced speed (the
+    teaching speed of an industrial arm) is 250 mm/s; five times the default."""
+    max_angular: float = 1.0
+    """rad/s: the blade, about 0.25 m from the flange, then moves at most about 0.25 m/s."""
+    max_linear_acceleration: float = 2.5
+    """m/s^2: the envelope's speed in 0.1 s; five times the default."""
+    max_angular_acceleration: float = 10.0
+    """rad/s^2: the envelope's angular speed in 0.1 s."""
+    max_gain: float = 5.0
+    """1/s, the PBVS gain lambda: the loop is a discrete proportional law, stable for
+    lambda * T < 2 and without overshoot for lambda * T < 1 with T the outer loop's period; the
+    paper's outer loop ran at about 15 Hz (T = 0.067 s): lambda * T = 0.33 at 5."""
+    min_watchdog: float = 0.001
+    """s: the Franka's control period (1 kHz); a shorter watchdog cannot be kept."""
+    max_watchdog: float = 0.5
+    """s: a command outlives the process that sent it by at most this long. At the default
+    5 cm/s the camera then coasts at most 2.5 cm before the robot brakes; a Franka stops in
+    well under a second from there."""
+    max_stop_time: float = 1.0
+    """s: the ceiling of every other timer that stops the robot (`LoopConfig.frame_timeout`,
+    `max_cycle`, `SafetyConfig.max_frame_age`): a larger one is a stop switched off."""
+
+
+#: The envelope (`Envelope`): the one instance the configs check against.
+ENVELOPE = Envelope()
+
+
+@dataclass(frozen=True)
+class ArmCeiling:
+    """The Franka Panda's own Cartesian limits (Franka's FCI documentation, "Limits for
+    Panda": 1.7 m/s, 2.5 rad/s, 13 m/s^2, 25 rad/s^2). Never exceeded, even with
+    `Limits.override_envelope`: a value above them is a typo (cm/s for m/s), not a choice."""
+
+    max_linear: float = 1.7
+    max_angular: float = 2.5
+    max_linear_acceleration: float = 13.0
+    max_angular_acceleration: float = 25.0
+
+
+ARM_CEILING = ArmCeiling()
+_LIMIT_FIELDS = ("max_linear", "max_angular", "max_linear_acceleration", "max_angular_acceleration")
+
+
+def check_gain(config: object, names: tuple[str, ...]) -> None:
+    """Gains must be positive, finite and within `ENVELOPE.max_gain` (a negative gain drives
+    the camera away from the goal; NaN stops every command without saying why)."""
+    check_finite(config, names, positive=True)
+    check_at_most(
+        config, dict.fromkeys(names, ENVELOPE.max_gain), "(the envelope's largest gain, 1/s)"
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -63,9 +143,24 @@ class Limits(JsonFields):
     max_angular_acceleration: float = 2.5
     """Ramp on increases of the angular speed, rad/s^2; 0: none."""
 
+    override_envelope: bool = False
+    """Allow speeds and accelerations above the envelope for servoing near a vine
+    (`ENVELOPE`, `docs/hardware.md`), up to the arm's own limits (`ARM_CEILING`), never above.
+    For a cleared cell, not for a vineyard with people in it."""
+
     def __post_init__(self) -> None:
         check_finite(self, ("max_linear", "max_angular"), positive=True)
         check_finite(self, ("max_linear_acceleration", "max_angular_acceleration"))
+        check_at_most(
+            self, {k: getattr(ARM_CEILING, k) for k in _LIMIT_FIELDS},
+            "(the Panda's own Cartesian limit; m/s, rad/s, m/s^2, rad/s^2: a value in cm/s?)",
+        )  # fmt: skip
+        if not self.override_envelope:
+            check_at_most(
+                self, {k: getattr(ENVELOPE, k) for k in _LIMIT_FIELDS},
+                "(the envelope for servoing near a vine, docs/hardware.md; --override-envelope "
+                "allows up to the arm's own limits)",
+            )  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -78,6 +173,12 @@ class CommandLimits(Limits):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_finite(self, ("watchdog",), positive=True)
+        if not ENVELOPE.min_watchdog <= self.watchdog <= ENVELOPE.max_watchdog:
+            raise InputError(
+                f"watchdog must lie in [{ENVELOPE.min_watchdog:g}, {ENVELOPE.max_watchdog:g}] s "
+                f"(the robot's control period to the envelope's ceiling, docs/hardware.md), "
+                f"got {self.watchdog:g}"
+            )
 
     def speeds(self) -> Limits:
         """The limits without the watchdog (what the servo law uses)."""
@@ -155,7 +256,14 @@ class SafetyConfig(JsonFields):
     symmetric and LM, 0.015 and 0.04 mm for point-to-point; docs/servo.md). 0: the ICP's own."""
 
     def __post_init__(self) -> None:
-        check_finite(self, ("track_tolerance",))
+        floats = tuple(f for f, v in self.__dataclass_fields__.items() if v.type == "float")
+        check_finite(self, floats)
+        check_at_most(self, {"max_frame_age": ENVELOPE.max_stop_time}, "s (a stop switched off)")
+        if self.jump_fraction > 1.0:  # (an overlap above 1 only refuses more: allowed)
+            raise InputError(f"jump_fraction must lie in [0, 1], got {self.jump_fraction}")
+        for name in ("min_correspondences", "reacquire_frames"):
+            if getattr(self, name) < 0:
+                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -192,6 +300,8 @@ class ServoConfig(JsonFields):
             raise InputError(f"unknown guess '{self.guess}'; choose one of: {', '.join(GUESSES)}")
         if self.law not in LAWS:
             raise InputError(f"unknown law '{self.law}'; choose one of: {', '.join(LAWS)}")
+        check_gain(self, ("gain", "gain_far"))
+        check_finite(self, ("converged_translation", "converged_rotation"), positive=True)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -228,6 +338,10 @@ class LoopConfig(JsonFields):
 
     def __post_init__(self) -> None:
         check_finite(self, ("frame_timeout", "camera_lost", "max_cycle"), positive=True)
+        check_at_most(
+            self, dict.fromkeys(("frame_timeout", "max_cycle"), ENVELOPE.max_stop_time),
+            "s (the envelope's ceiling on a timer that stops the robot, docs/hardware.md)",
+        )  # fmt: skip
         check_finite(self, ("duration", "settle"))
         check_finite(self, ("follow_window", "follow_min_translation", "follow_min_rotation"))
         if not 0.0 < self.follow_fraction < 1.0:
@@ -293,6 +407,16 @@ class RunnerConfig(JsonFields):
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()
+        check_finite(self, ("start_translation", "start_rotation"))
+        check_finite(self, ("camera_rate", "dynamics_factor"), positive=True)
+        if self.rate is not None:
+            check_finite(self, ("rate",))
+        if not 0.0 < self.dynamics_factor <= 1.0:
+            raise InputError(f"dynamics_factor must lie in (0, 1], got {self.dynamics_factor}")
+        for name in ("width", "height", "fps"):
+            if getattr(self, name) < 1:
+                raise InputError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check_counts(self, ("seed",))
         if self.profile != "ideal" and self.camera != "sim":
             raise InputError(
                 f"--profile {self.profile} is a simulation setting: it needs --camera sim (a real "
@@ -327,6 +451,8 @@ class CheckConfig(JsonFields):
     def __post_init__(self) -> None:
         if self.frames < 1:
             raise InputError(f"frames must be >= 1, got {self.frames}")
+        if not all(math.isfinite(v) for v in self.sim_offset) or self.seed < 0:
+            raise InputError(f"sim_offset must be finite and seed >= 0, got {self.sim_offset}")
         check_finite(self, ("max_translation", "max_rotation", "max_rmse"), positive=True)
         if not 0.0 < self.min_coverage <= 1.0:
             raise InputError(f"min_coverage must lie in (0, 1], got {self.min_coverage}")

@@ -24,6 +24,7 @@ run the way they draw a simulated one (`vinetwin servo-plot`).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -37,7 +38,8 @@ import numpy as np
 
 from vinetwin._config import json_default
 from vinetwin.capture.sources import CameraFrame, CameraSource
-from vinetwin.errors import InputError
+from vinetwin.errors import InputError, OutputError, raise_if_interrupt
+from vinetwin.files import parse_json
 from vinetwin.frames import Array, invert, pose_error
 from vinetwin.servo.config import LoopConfig
 from vinetwin.servo.robot import Robot
@@ -120,15 +122,24 @@ class CycleLog:
         self.write({"format": LOG_FORMAT, "format_version": LOG_VERSION, **header})
 
     def write(self, record: dict[str, Any]) -> None:
+        """Appends a record; a failed write (a full disk) closes the log and raises
+        OutputError naming it, once: the loop stops the robot and ends the run."""
         if self._f is None:
             return
-        self._f.write(json.dumps(record, default=json_default) + "\n")
-        self._f.flush()  # a crash keeps every cycle logged so far
+        try:
+            self._f.write(json.dumps(record, default=json_default) + "\n")
+            self._f.flush()  # a crash keeps every cycle logged so far
+        except OSError as exc:
+            self.close()
+            raise OutputError(
+                f"{self.path}: cannot write the servo log: {exc.strerror or exc}"
+            ) from None
 
     def close(self) -> None:
         if self._f is not None:
-            self._f.close()
-            self._f = None
+            f, self._f = self._f, None
+            with contextlib.suppress(OSError):  # a write already failed and said so
+                f.close()
 
 
 def cycle_record(c: Cycle, extra: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -319,6 +330,7 @@ def run_loop(
         summary.ended = "interrupted"
     except Exception as exc:
         summary.ended = f"error: {exc}"
+        raise_if_interrupt(exc)  # Ctrl-C inside a compiled kernel
         raise
     finally:
         if robot is not None and (send or robot.moving):  # a dry run sends nothing, ever
@@ -341,15 +353,24 @@ def read_log(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]], di
         raise InputError(f"{path}: no such log")
     header: dict[str, Any] | None = None
     cycles, summary = [], {}
-    for n, line in enumerate(path.read_text().splitlines()):
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read it as a servo log (JSON Lines): {exc}") from None
+    for n, line in enumerate(text.splitlines()):
         try:
-            rec = json.loads(line)
+            rec = parse_json(line)
         except ValueError:
             break  # a partial last line
-        if n == 0:
-            if rec.get("format") != LOG_FORMAT:
+        if not isinstance(rec, dict):
+            if n == 0:
                 raise InputError(f"{path}: not a vinetwin servo log")
-            if int(rec.get("format_version", 0)) > LOG_VERSION:
+            continue
+        if n == 0:
+            version = rec.get("format_version", 0)
+            if rec.get("format") != LOG_FORMAT or not isinstance(version, int):
+                raise InputError(f"{path}: not a vinetwin servo log")
+            if version > LOG_VERSION:
                 raise InputError(
                     f"{path}: log version {rec['format_version']} is newer than this vinetwin "
                     f"reads ({LOG_VERSION})"
@@ -371,41 +392,51 @@ def log_as_campaign(paths: list[str | Path]) -> dict[str, Any]:
     trusted estimate puts the reference camera."""
     runs, starts, twins = [], [], set()
     for i, p in enumerate(paths):
-        header, cycles, summary = read_log(p)
-        twins.add(str(header.get("twin", "")))
-        t0 = cycles[0]["stamp"] if cycles else 0.0
-        series: dict[str, list[Any]] = {
-            "t": [], "error_t": [], "error_r": [], "trusted": [], "position": []
-        }  # fmt: skip
-        goal = np.eye(4)
-        est: Array | None = None
-        for c in cycles:
-            if c.get("true_error") is not None:
-                et, er = c["true_error"]
-            elif c.get("T_ref_cur") is not None:
-                et, er = pose_error(np.asarray(c["T_ref_cur"]), np.eye(4))
-            else:
-                continue
-            series["t"].append(c["stamp"] - t0)
-            series["error_t"].append(et)
-            series["error_r"].append(er)
-            series["trusted"].append(c["trusted"])
-            base = c.get("T_base_camera")
-            series["position"].append((np.asarray(base)[:3, 3] if base else np.zeros(3)).tolist())
-            if c["trusted"] and base is not None and c.get("T_ref_cur") is not None:
-                est = np.asarray(base) @ invert(np.asarray(c["T_ref_cur"]))
-        if est is not None:
-            goal = est
-        start = (series["error_t"][0], series["error_r"][0]) if series["t"] else (0.0, 0.0)
-        starts.append(start)
-        runs.append(
-            {
-                "key": f"log/{Path(p).stem}",
-                "group": "grid",
-                "start_index": i,
-                "goal": goal.tolist(),
-                "summary": {"variant": header.get("variant", "?"), **summary},
-                "series": series,
-            }
-        )
+        try:
+            runs.append(_log_run(i, p, starts, twins))
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise InputError(f"{p}: malformed servo log: {type(exc).__name__}: {exc}") from None
     return {"twin": ", ".join(sorted(twins)), "starts": starts, "runs": runs}
+
+
+def _log_run(
+    i: int, p: str | Path, starts: list[tuple[float, float]], twins: set[str]
+) -> dict[str, Any]:
+    """One log as a campaign run (`log_as_campaign`); its start is appended to `starts`."""
+    header, cycles, summary = read_log(p)
+    twins.add(str(header.get("twin", "")))
+    t0 = cycles[0]["stamp"] if cycles else 0.0
+    series: dict[str, list[Any]] = {
+        "t": [], "error_t": [], "error_r": [], "trusted": [], "position": []
+    }  # fmt: skip
+    goal = np.eye(4)
+    est: Array | None = None
+    for c in cycles:
+        if c.get("true_error") is not None:
+            et, er = c["true_error"]
+        elif c.get("T_ref_cur") is not None:
+            et, er = pose_error(np.asarray(c["T_ref_cur"]), np.eye(4))
+        else:
+            continue
+        series["t"].append(c["stamp"] - t0)
+        series["error_t"].append(et)
+        series["error_r"].append(er)
+        series["trusted"].append(c["trusted"])
+        base = c.get("T_base_camera")
+        series["position"].append((np.asarray(base)[:3, 3] if base else np.zeros(3)).tolist())
+        if c["trusted"] and base is not None and c.get("T_ref_cur") is not None:
+            est = np.asarray(base) @ invert(np.asarray(c["T_ref_cur"]))
+    if est is not None:
+        goal = est
+    start = (series["error_t"][0], series["error_r"][0]) if series["t"] else (0.0, 0.0)
+    starts.append(start)
+    return {
+        "key": f"log/{Path(p).stem}",
+        "group": "grid",
+        "start_index": i,
+        "goal": goal.tolist(),
+        "summary": {"variant": header.get("variant", "?"), **summary},
+        "series": series,
+    }

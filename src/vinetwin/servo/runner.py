@@ -32,6 +32,7 @@ import numpy as np
 from vinetwin.capture.sources import CameraSource
 from vinetwin.cloud import Cloud
 from vinetwin.errors import InputError
+from vinetwin.files import refuse_existing
 from vinetwin.frames import Array, invert, pose_error, transform_points
 from vinetwin.servo.config import LoopConfig, RunnerConfig, ServoConfig
 from vinetwin.servo.loop import Cycle, CycleLog, LoopSummary, run_loop
@@ -112,8 +113,14 @@ def dense_reference_for(twin: Twin, pose_id: str, config: ServoConfig) -> Cloud 
 
 
 def default_log_path(twin: Twin, pose_id: str) -> Path:
+    """TWIN/servo/POSE-DATE.jsonl, with a counter when a run in the same second has it."""
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    return twin.root / "servo" / f"{pose_id}-{stamp}.jsonl"
+    path = twin.root / "servo" / f"{pose_id}-{stamp}.jsonl"
+    k = 1
+    while path.exists():
+        k += 1
+        path = twin.root / "servo" / f"{pose_id}-{stamp}-{k}.jsonl"
+    return path
 
 
 def _check_combination(cfg: RunnerConfig) -> str:
@@ -235,15 +242,19 @@ def run_pose(
     record: str | Path | None = None,
     simulator: Callable[[Twin, PruningPose, RunnerConfig], Session] | None = None,
     mcap: str | Path | None = None,
+    overwrite: bool = False,
 ) -> tuple[LoopSummary, Path]:
     """Servos to one pruning pose; returns the loop's summary and the log's path. The simulated
     camera (`cfg.camera == "sim"`) needs `simulator`: `vinetwin.sim.rig.simulated_session`.
-    `mcap`: also write the run as a ROS 2 bag with MCAP storage (`servo.mcap_log`)."""
+    `mcap`: also write the run as a ROS 2 bag with MCAP storage (`servo.mcap_log`). An
+    existing `log_path` file or non-empty `record` folder is refused unless `overwrite`."""
     pose = twin.pose(cfg.pose) if cfg.pose else twin.poses[0]
     robot_kind = _check_combination(cfg)
     path = Path(log_path) if log_path else default_log_path(twin, pose.id)
-    _check_writable(path, "--log", folder=False)  # before any robot or camera is opened
+    refuse_existing(path, "--log", overwrite)  # before any robot or camera is opened
+    _check_writable(path, "--log", folder=False)
     if record is not None:
+        refuse_existing(record, "--record", overwrite)
         _check_writable(Path(record), "--record", folder=True)
     if mcap is not None and Path(mcap).exists():
         raise InputError(f"--mcap {mcap} exists; choose a new name (a folder is made)")

@@ -43,6 +43,7 @@ import numpy as np
 
 from vinetwin.camera import CameraModel
 from vinetwin.cloud import Cloud, PerceptionConfig, perceive
+from vinetwin.errors import raise_if_interrupt
 from vinetwin.frames import Array, check_pose, invert, pose_error, se3_exp, so3_log
 from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
 from vinetwin.registration.search import WideSearch
@@ -214,6 +215,7 @@ class Servo:
                 grid_origin=self._dither(stamp),
             )  # fmt: skip
         except Exception as exc:  # a malformed image is a refused frame, not a crash
+            raise_if_interrupt(exc)
             return self._refuse(f"bad depth image: {exc}", stamp)
         t_perception = time.perf_counter() - t0
         result = self.step(cloud, stamp, T_base_camera, now)

@@ -12,8 +12,20 @@ from typing import TYPE_CHECKING, Literal, get_args
 
 from vinetwin._config import JsonFields
 from vinetwin.errors import InputError
-from vinetwin.servo.config import Law, Limits, ServoConfig, Variant, check_finite
+from vinetwin.servo.config import (
+    Law,
+    Limits,
+    ServoConfig,
+    Variant,
+    check_at_most,
+    check_counts,
+    check_finite,
+)
 from vinetwin.sim.paper import PRESETS
+
+#: The longest simulated run (s) a campaign, validation or run accepts: the paper's slowest
+#: convergence took 125 s; an hour is a typo, not a run.
+MAX_DURATION = 3600.0
 
 if TYPE_CHECKING:
     from vinetwin.frames import Array
@@ -196,9 +208,10 @@ PROFILES: dict[str, FieldProfile] = {
 def load_profile(name: str, sources: tuple[str, ...] | None = None) -> FieldProfile:
     """`ideal`, `field`, or a JSON file of `FieldProfile` fields (unknown keys are an error, so
     a typo does not silently leave a source at its default); `sources` replaces its sources."""
-    import json
     from dataclasses import replace
     from pathlib import Path
+
+    from vinetwin.files import read_json
 
     if name in PROFILES:
         profile = PROFILES[name]
@@ -208,10 +221,7 @@ def load_profile(name: str, sources: tuple[str, ...] | None = None) -> FieldProf
             raise InputError(
                 f"unknown profile '{name}': give ideal, field or a JSON file of FieldProfile fields"
             )
-        try:
-            data = json.loads(path.read_text())
-        except ValueError as exc:
-            raise InputError(f"{path}: not JSON ({exc})") from None
+        data = read_json(path, InputError)
         if not isinstance(data, dict):
             raise InputError(f"{path}: a profile is a JSON object of FieldProfile fields")
         unknown = sorted(set(data) - set(FieldProfile.__dataclass_fields__))
@@ -266,6 +276,8 @@ class SimConfig(ServoConfig):
         check_finite(self, ("camera_rate", "duration"), positive=True)
         check_finite(self, ("fixed_period", "settle", "registration_error_translation",
                             "registration_error_rotation"))  # fmt: skip
+        check_counts(self, ("seed",))
+        check_at_most(self, {"duration": MAX_DURATION}, "s (the longest simulated run)")
 
 
 def _check_variants(variants: tuple[str, ...]) -> None:
@@ -345,7 +357,13 @@ class CampaignConfig(JsonFields):
             raise InputError(f"unknown preset '{self.preset}'; choose one of: {', '.join(PRESETS)}")
         _check_variants(self.variants)
         check_finite(self, ("duration", "camera_rate"), positive=True)
-        check_finite(self, ("fixed_period",))
+        check_finite(self, ("fixed_period", "disturbance_time", "fault_rate"))
+        check_counts(self, ("seed", "workers"))
+        check_at_most(self, {"duration": MAX_DURATION}, "s (the longest simulated run)")
+        if not all(map(math.isfinite, self.disturbance_translation + self.disturbance_rotation)):
+            raise InputError("disturbance_translation and disturbance_rotation must be finite")
+        if self.fault_rate > 1.0:
+            raise InputError(f"fault_rate must lie in [0, 1], got {self.fault_rate}")
         if self.sim not in ("kinematic", "mujoco"):
             raise InputError(f"unknown simulation '{self.sim}'; choose kinematic or mujoco")
 
@@ -406,7 +424,12 @@ class ValidateConfig(JsonFields):
         _check_variants(self.variants)
         if self.starts < 1:
             raise InputError(f"starts must be >= 1, got {self.starts}")
-        check_finite(self, ("radius_translation", "radius_rotation", "duration"))
+        check_finite(self, ("radius_translation", "radius_rotation", "fault_rate"))
+        check_finite(self, ("duration",), positive=True)
+        check_counts(self, ("seed", "workers"))
+        check_at_most(self, {"duration": MAX_DURATION}, "s (the longest simulated run)")
+        if self.fault_rate > 1.0:
+            raise InputError(f"fault_rate must lie in [0, 1], got {self.fault_rate}")
 
 
 @dataclass(frozen=True, kw_only=True)

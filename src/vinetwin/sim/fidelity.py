@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin.files import atomic_write_json, atomic_write_text
+from vinetwin.files import atomic_write_json, atomic_write_text, save_figure
 from vinetwin.sim.campaign import run_campaign
 from vinetwin.sim.config import CampaignConfig, FidelityConfig, load_profile
 from vinetwin.sim.report import COLORS, _plt
@@ -184,5 +184,5 @@ def write_fidelity_report(result: dict[str, Any], out_dir: Path) -> None:
     axes[0].legend(fontsize=7)
     fig.suptitle(f"{result['twin']}: final error against the twin's quality", fontsize=11)
     fig.tight_layout()
-    fig.savefig(out_dir / "fidelity.png", dpi=110)
+    save_figure(fig, out_dir / "fidelity.png", 110)
     plt.close(fig)

@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin.files import atomic_write_text
+from vinetwin.errors import InputError
+from vinetwin.files import atomic_write_text, save_figure
 from vinetwin.sim.paper import PAPER_NAMES, PAPER_TABLE1
 
 COLORS = {
@@ -461,7 +462,7 @@ def plot_errors(data: dict[str, Any], path: Path) -> None:
     bt, br = _band(data)
     fig.suptitle(f"{data['twin']}: error against time (dotted: {1000 * bt:g} mm, {br:g} rad)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, 110)
     plt.close(fig)
 
 
@@ -489,7 +490,7 @@ def plot_trajectories(data: dict[str, Any], path: Path) -> None:
     fig.axes[0].legend(fontsize=7, loc="upper left")
     fig.suptitle("camera paths in the goal camera frame (dot: start, star: goal)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, 110)
     plt.close(fig)
 
 
@@ -513,7 +514,7 @@ def plot_group(data: dict[str, Any], group: str, path: Path) -> None:
     }
     ax_t.set_title(titles[group] if runs else f"{group}: no runs")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, 110)
     plt.close(fig)
 
 
@@ -541,13 +542,14 @@ def plot_laws(data: dict[str, Any], path: Path) -> None:
         ax.set_ylabel("v (px)")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, 110)
     plt.close(fig)
 
 
 def print_tables(data: dict[str, Any]) -> None:
     """Prints the campaign's tables (starts x variants, disturbance, initial guess)."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     con = Console()
@@ -565,18 +567,24 @@ def print_tables(data: dict[str, Any]) -> None:
             keys = [k for k in keys if k != "paper (real robot)"]
         table = Table(*keys, title=title)
         for r in rows:
-            table.add_row(*(r[k].split(":")[0] if k == "start" else r[k] for k in keys))
+            table.add_row(*(escape(r[k].split(":")[0] if k == "start" else r[k]) for k in keys))
         con.print(table)
 
 
-def plot_logs(logs: list[Path], out: Path) -> list[Path]:
+def plot_logs(logs: list[Path], out: Path, overwrite: bool = False) -> list[Path]:
     """Servo logs (`vinetwin servo --log`) drawn with the campaign's error and trajectory
-    figures into `out`; returns the files written."""
+    figures into `out`; returns the files written. Existing figures there are refused unless
+    `overwrite`."""
+    from vinetwin.files import refuse_existing
     from vinetwin.servo.loop import log_as_campaign
 
+    paths = [out / "errors.png", out / "trajectories.png"]
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file; name a folder")
+    for path in paths:
+        refuse_existing(path, "--out", overwrite)
     data = log_as_campaign(list(logs))
     out.mkdir(parents=True, exist_ok=True)
-    paths = [out / "errors.png", out / "trajectories.png"]
     plot_errors(data, paths[0])
     plot_trajectories(data, paths[1])
     return paths

@@ -121,8 +121,8 @@ def build_rig(
         reference, backend.camera, perception, cfg, cfg.limits, safety, target, dense_reference
     )
     servo.reset(invert(believed_goal(goal, cfg, rng)) @ start)
-    limits = CommandLimits(
-        **cfg.limits.to_dict(), **({} if watchdog is None else {"watchdog": watchdog})
+    limits = CommandLimits.from_dict(
+        {**cfg.limits.to_dict(), **({} if watchdog is None else {"watchdog": watchdog})}
     )
     robot: SimulatedRobot
     if arm is None:

@@ -25,7 +25,13 @@ import numpy as np
 
 from vinetwin._faults import fault_point
 from vinetwin.executor import ExecutorConfig
-from vinetwin.files import atomic_write_json, atomic_write_text, file_sha256, json_sha256
+from vinetwin.files import (
+    atomic_write_json,
+    atomic_write_text,
+    file_sha256,
+    json_sha256,
+    save_figure,
+)
 from vinetwin.jobstore import JobStore
 from vinetwin.render.reference import pose_seed
 from vinetwin.sim.config import FaultConfig, SimConfig, ValidateConfig
@@ -361,5 +367,5 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
     ax.set_title("servo-ability: success rate, basin (mm)")
     fig.colorbar(im, ax=ax, label="success rate")
     fig.tight_layout()
-    fig.savefig(out_dir / "summary.png", dpi=110)
+    save_figure(fig, out_dir / "summary.png", 110)
     plt.close(fig)

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from vinetwin.errors import InputError
 from vinetwin.frames import Array
 from vinetwin.twin.skeleton import Branch, CutCandidate, Skeleton
 
@@ -227,6 +228,8 @@ def sample_twin(
     growth (many canes crossing, as on the paper's Table 2 vines)."""
     from vinetwin.twin.model import twin_from_skeleton
 
+    if not 0 <= seed < 2**32:
+        raise InputError(f"seed must lie in [0, 2^32), got {seed}")
     sk = generate_vine(seed, VineParams(cordons=cordons, **(DENSE if dense else {})))  # type: ignore[arg-type]
     source = {"generator": "vinetwin.twin.generator", "seed": seed, "cordons": cordons,
               **({"dense": True} if dense else {})}  # fmt: skip

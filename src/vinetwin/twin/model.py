@@ -43,8 +43,13 @@ from vinetwin.errors import (
     TwinFieldError,
     TwinVersionError,
 )
-from vinetwin.files import atomic_write_bytes, atomic_write_text, remove_orphan_temp_files
-from vinetwin.frames import Array, check_pose, make_pose
+from vinetwin.files import (
+    atomic_write_bytes,
+    atomic_write_text,
+    parse_json,
+    remove_orphan_temp_files,
+)
+from vinetwin.frames import Array, check_pose, make_pose, unit_vector
 from vinetwin.mesh import check_mesh_arrays, load_mesh, mesh_ply_bytes
 from vinetwin.twin.poses import Approach, approach_of, default_approach, pruning_pose
 from vinetwin.twin.skeleton import Skeleton
@@ -135,10 +140,10 @@ class _Fields:
         v = self.req(data, key, where)
         arr = self._numbers(v, f"{where}{key}", (3,))
         if unit:
-            n = float(np.linalg.norm(arr))
-            if n < 1e-9:
-                raise self.fail(f"{where}{key}", "must be a non-zero direction")
-            arr = arr / n
+            try:
+                arr = unit_vector(arr)
+            except InputError:
+                raise self.fail(f"{where}{key}", "must be a non-zero direction") from None
         return arr
 
     def pose(self, data: dict[str, Any], key: str, where: str) -> Array:
@@ -384,12 +389,14 @@ class Twin:
         except (OSError, UnicodeDecodeError) as exc:
             raise TwinError(f"{path}: cannot read: {exc}") from exc
         try:
-            data = json.loads(text)
+            data = parse_json(text)
         except json.JSONDecodeError as exc:
             raise TwinError(
                 f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg}); "
                 f"the file may be truncated"
             ) from exc
+        except ValueError as exc:  # a number too long, nesting too deep
+            raise TwinError(f"{path}: cannot read it: {exc}") from None
         return cls.from_json(root, data, path)
 
     @classmethod
@@ -603,11 +610,11 @@ class Twin:
         self, point: Any, cane_axis: Any, *, name: str = "", source: str = "manual"
     ) -> CutPoint:
         p = np.asarray(point, dtype=np.float64).reshape(3)
-        a = np.asarray(cane_axis, dtype=np.float64).reshape(3)
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(a)) and np.linalg.norm(a) > 1e-9):
+        if not np.all(np.isfinite(p)):
             raise InputError("a cut point needs a finite point and a finite non-zero cane axis")
+        a = unit_vector(cane_axis, "cane axis")
         cid = self._next_id("c", [c.id for c in self.cut_points])
-        cut = CutPoint(cid, p, a / np.linalg.norm(a), name=name or cid, source=source)
+        cut = CutPoint(cid, p, a, name=name or cid, source=source)
         self.cut_points.append(cut)
         return cut
 
@@ -619,8 +626,7 @@ class Twin:
             raise InputError("cut point must be finite")
         cut.point = p
         if cane_axis is not None:
-            a = np.asarray(cane_axis, dtype=np.float64).reshape(3)
-            cut.cane_axis = a / np.linalg.norm(a)
+            cut.cane_axis = unit_vector(cane_axis, "cane axis")
         for pose in self.poses:
             if pose.cut_point == cut_id:
                 pose.T_vine_camera = pruning_pose(cut.point, cut.cane_axis, pose.approach)
@@ -689,6 +695,11 @@ def find_twins(path: str | Path) -> list[Path]:
     return found
 
 
+#: The tube mesh's triangle edge (m): below MIN_EDGE a 1.5 m vine's mesh passes 5 million
+#: triangles; above MAX_EDGE a cane is a few flat facets.
+MIN_EDGE, MAX_EDGE = 0.0005, 0.05
+
+
 def twin_from_skeleton(
     root: str | Path,
     skeleton: Skeleton,
@@ -706,6 +717,13 @@ def twin_from_skeleton(
     (spread over the vine) become cut points with default pruning poses."""
     from vinetwin.twin.skeleton import tube_mesh
 
+    if not (isinstance(edge, int | float) and MIN_EDGE <= edge <= MAX_EDGE):
+        raise InputError(
+            f"edge must lie in [{MIN_EDGE:g}, {MAX_EDGE:g}] m (the tube mesh's triangle edge; "
+            f"the bundled sample uses 0.002), got {edge}"
+        )
+    if cut_points < 0:
+        raise InputError(f"cut_points must be >= 0, got {cut_points}")
     if progress:
         progress("meshing")
     V, F = tube_mesh(skeleton, edge=edge, caps=caps)  # type: ignore[arg-type]
@@ -761,7 +779,11 @@ def _save_lock(root: Path) -> Iterator[None]:
     `.twin.lock`: released by the kernel if the process dies)."""
     import fcntl
 
-    fd = os.open(root / ".twin.lock", os.O_CREAT | os.O_RDWR, 0o644)
+    path = root / ".twin.lock"
+    try:  # created rw for everyone less the umask, as every file vinetwin writes
+        fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o666)
+    except PermissionError:  # made by another user (or an older vinetwin, 0644): flock reads
+        fd = os.open(path, os.O_RDONLY)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
         yield

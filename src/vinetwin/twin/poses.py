@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin.errors import InputError
-from vinetwin.frames import Array, make_pose
+from vinetwin.frames import Array, make_pose, unit_vector
 
 DEFAULT_STANDOFF = 0.15
 #: Direction the camera looks along by default: from the robot's side (-Y) towards the row.
@@ -36,11 +36,7 @@ class Approach:
 
 
 def _unit(v: Any, name: str) -> Array:
-    v = np.asarray(v, dtype=np.float64).reshape(3)
-    n = float(np.linalg.norm(v))
-    if not np.isfinite(n) or n < 1e-9:
-        raise InputError(f"{name} must be a finite non-zero 3-vector, got {v.tolist()}")
-    return v / n
+    return unit_vector(v, name)
 
 
 def direction_from_angles(azimuth: float, elevation: float) -> Array:

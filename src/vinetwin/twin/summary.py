@@ -8,30 +8,31 @@ from vinetwin.twin.model import Twin
 def print_summary(twin: Twin, mesh: bool = True) -> None:
     """Prints what a twin holds: mesh, camera, cut points, and each pose with its servo-ability."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
-    con = Console()
-    con.print(f"[bold]{twin.name}[/] at {twin.root}")
+    con = Console()  # names, paths and ids are the user's: printed as text, never as markup
+    con.print(f"[bold]{escape(twin.name)}[/] at {escape(str(twin.root))}")
     if mesh:
         m = twin.load_mesh()
         ext = m.bounds[1] - m.bounds[0]
         con.print(
-            f"mesh {twin.mesh_file}: {len(m.vertices)} vertices, {len(m.faces)} triangles, "
+            f"mesh {escape(str(twin.mesh_file))}: {len(m.vertices)} vertices, {len(m.faces)} triangles, "
             f"extent {ext[0]:.3f} x {ext[1]:.3f} x {ext[2]:.3f} m"
         )
-    con.print(f"camera {twin.camera.name}: {twin.camera.width}x{twin.camera.height}")
+    con.print(f"camera {escape(twin.camera.name)}: {twin.camera.width}x{twin.camera.height}")
     table = Table(
         "pose", "cut point", "standoff (m)", "ICP variant", "camera position (m)", "servo-ability"
     )
     for p in twin.poses:
         t = p.T_vine_camera[:3, 3]
         table.add_row(
-            p.id,
-            p.cut_point,
+            escape(p.id),
+            escape(p.cut_point),
             f"{p.standoff:.3f}",
-            p.icp_variant,
+            escape(p.icp_variant),
             f"{t[0]:+.3f} {t[1]:+.3f} {t[2]:+.3f}",
-            servo_ability(p.extra.get("validation"), p.icp_variant),
+            escape(servo_ability(p.extra.get("validation"), p.icp_variant)),
         )
     con.print(f"{len(twin.cut_points)} cut points, {len(twin.poses)} pruning poses")
     if twin.poses:

@@ -24,7 +24,7 @@ import numpy as np
 
 from vinetwin.cloud import ICP_VARIANTS
 from vinetwin.conventions import viser_wxyz_position
-from vinetwin.errors import VinetwinError
+from vinetwin.errors import InputError, VinetwinError
 from vinetwin.twin.poses import Approach
 from vinetwin.web.config import WebConfig
 from vinetwin.web.session import AuthoringSession
@@ -649,9 +649,36 @@ def serve(
             "(the app has no authentication); use --host 127.0.0.1 unless the network is yours",
             host, port, root,
         )  # fmt: skip
+    _check_port(host, port)
     app = App(root, host, port, config)
+    if app.server.get_port() != port:  # taken between the check and the start: viser moved on
+        app.close()
+        raise InputError(f"port {port} on {host} is in use; choose another with --port")
     log.info("vinetwin web on http://%s:%d  (twin %s)", host, port, root)
     return app
+
+
+def _check_port(host: str, port: int) -> None:
+    """Refuses, by name, a port out of range or in use: viser would quietly move to the next
+    free port while the command printed the asked one (another service's page)."""
+    import socket
+
+    if not 1 <= port <= 65535:
+        raise InputError(f"--port must lie in 1-65535, got {port}")
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError) as exc:
+        raise InputError(f"--host {host}: cannot resolve it ({exc})") from None
+    family, _, _, _, address = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as servers bind
+        try:
+            sock.bind(address)
+        except OSError as exc:
+            raise InputError(
+                f"cannot listen on {host}:{port}: {exc.strerror or exc} (in use? choose another "
+                "with --port)"
+            ) from None
 
 
 def serve_folder(
