@@ -67,6 +67,16 @@ def sample_twin_dir() -> Path:
     return p
 
 
+@pytest.fixture
+def twin_dir(sample_twin_dir: Path, tmp_path: Path) -> Path:
+    """A copy of the bundled sample to change (without references or validation results)."""
+    import shutil
+
+    dst = tmp_path / "vine.twin"
+    shutil.copytree(sample_twin_dir, dst, ignore=shutil.ignore_patterns("references", "validation"))
+    return dst
+
+
 class VineViews:
     """The bilateral sample rendered like a servo sees it: a reference cloud per pruning pose and
     current clouds (depth and cloud) at known offsets from it, each with its own D405 noise."""

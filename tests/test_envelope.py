@@ -9,7 +9,6 @@ import errno
 import json
 import logging
 import os
-import shutil
 import socket
 import time
 from pathlib import Path
@@ -23,13 +22,6 @@ from vinetwin.twin import Twin
 
 #: A camera that cannot open: a run refused for its settings says so before reaching it.
 NO_CAMERA = ["--camera", "folder:/nowhere", "--robot", "none"]
-
-
-@pytest.fixture
-def twin_dir(sample_twin_dir: Path, tmp_path: Path) -> Path:
-    dst = tmp_path / "t.twin"
-    shutil.copytree(sample_twin_dir, dst, ignore=shutil.ignore_patterns("references", "validation"))
-    return dst
 
 
 def said(

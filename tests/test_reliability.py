@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -22,13 +21,6 @@ from tests.conftest import ROOT
 from vinetwin.cli import main
 from vinetwin.errors import InputError, MeshError, TwinConflictError, TwinError, TwinFieldError
 from vinetwin.twin import Twin
-
-
-@pytest.fixture
-def twin_dir(sample_twin_dir: Path, tmp_path: Path) -> Path:
-    dst = tmp_path / "vine.twin"
-    shutil.copytree(sample_twin_dir, dst, ignore=shutil.ignore_patterns("references", "validation"))
-    return dst
 
 
 # ----------------------------------------------------------------------------- 1 lost updates

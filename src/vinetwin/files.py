@@ -151,6 +151,19 @@ def refuse_existing(path: str | Path, flag: str, overwrite: bool = False) -> Pat
     return path
 
 
+def refuse_existing_outputs(
+    folder: Path, names: tuple[str, ...], flag: str, overwrite: bool
+) -> None:
+    """`refuse_existing` for the files `names` a command writes into `folder`; a `folder` that
+    is a file is refused anyway."""
+    from vinetwin.errors import InputError
+
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{flag} {folder} is a file; name a folder (for {', '.join(names)})")
+    for name in names:
+        refuse_existing(folder / name, flag, overwrite)
+
+
 def parse_json(text: str | bytes) -> Any:
     """`json.loads`, whose every refusal is a ValueError: besides malformed JSON, an integer
     of over 4300 digits (Python's own limit) and nesting deeper than the parser's recursion

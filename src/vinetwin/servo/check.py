@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 
 from vinetwin.cloud import Cloud, perceive
-from vinetwin.errors import InputError
 from vinetwin.files import save_figure
 from vinetwin.frames import Array, pose_error, transform_points
 from vinetwin.registration.icp import ICP, ICPConfig
@@ -214,14 +213,11 @@ def run_check(
     holds an earlier check, is refused before anything runs, unless `overwrite`."""
     import json
 
-    from vinetwin.files import atomic_write_text, refuse_existing
+    from vinetwin.files import atomic_write_text, refuse_existing_outputs
     from vinetwin.servo.runner import reference_cloud
 
     if out is not None:
-        if out.exists() and not out.is_dir():
-            raise InputError(f"--out {out} is a file; name a folder (check.json, check.png)")
-        for name in ("check.json", "check.png"):
-            refuse_existing(out / name, "--out", overwrite)
+        refuse_existing_outputs(out, ("check.json", "check.png"), "--out", overwrite)
     twin = Twin.load(twin_dir)
     pose = twin.pose(config.pose) if config.pose else twin.poses[0]
     reference = reference_cloud(twin, pose.id)

@@ -393,20 +393,20 @@ def log_as_campaign(paths: list[str | Path]) -> dict[str, Any]:
     runs, starts, twins = [], [], set()
     for i, p in enumerate(paths):
         try:
-            runs.append(_log_run(i, p, starts, twins))
+            run, start, twin = _log_run(i, p)
+        except InputError:
+            raise
         except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
-            if isinstance(exc, InputError):
-                raise
             raise InputError(f"{p}: malformed servo log: {type(exc).__name__}: {exc}") from None
+        runs.append(run)
+        starts.append(start)
+        twins.add(twin)
     return {"twin": ", ".join(sorted(twins)), "starts": starts, "runs": runs}
 
 
-def _log_run(
-    i: int, p: str | Path, starts: list[tuple[float, float]], twins: set[str]
-) -> dict[str, Any]:
-    """One log as a campaign run (`log_as_campaign`); its start is appended to `starts`."""
+def _log_run(i: int, p: str | Path) -> tuple[dict[str, Any], tuple[float, float], str]:
+    """One log as a campaign run (`log_as_campaign`), its start error and its twin."""
     header, cycles, summary = read_log(p)
-    twins.add(str(header.get("twin", "")))
     t0 = cycles[0]["stamp"] if cycles else 0.0
     series: dict[str, list[Any]] = {
         "t": [], "error_t": [], "error_r": [], "trusted": [], "position": []
@@ -431,8 +431,7 @@ def _log_run(
     if est is not None:
         goal = est
     start = (series["error_t"][0], series["error_r"][0]) if series["t"] else (0.0, 0.0)
-    starts.append(start)
-    return {
+    run = {
         "key": f"log/{Path(p).stem}",
         "group": "grid",
         "start_index": i,
@@ -440,3 +439,4 @@ def _log_run(
         "summary": {"variant": header.get("variant", "?"), **summary},
         "series": series,
     }
+    return run, start, str(header.get("twin", ""))

@@ -10,7 +10,6 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin.errors import InputError
 from vinetwin.files import atomic_write_text, save_figure
 from vinetwin.sim.paper import PAPER_NAMES, PAPER_TABLE1
 
@@ -575,14 +574,12 @@ def plot_logs(logs: list[Path], out: Path, overwrite: bool = False) -> list[Path
     """Servo logs (`vinetwin servo --log`) drawn with the campaign's error and trajectory
     figures into `out`; returns the files written. Existing figures there are refused unless
     `overwrite`."""
-    from vinetwin.files import refuse_existing
+    from vinetwin.files import refuse_existing_outputs
     from vinetwin.servo.loop import log_as_campaign
 
-    paths = [out / "errors.png", out / "trajectories.png"]
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} is a file; name a folder")
-    for path in paths:
-        refuse_existing(path, "--out", overwrite)
+    names = ("errors.png", "trajectories.png")
+    refuse_existing_outputs(out, names, "--out", overwrite)
+    paths = [out / name for name in names]
     data = log_as_campaign(list(logs))
     out.mkdir(parents=True, exist_ok=True)
     plot_errors(data, paths[0])
