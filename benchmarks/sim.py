@@ -32,7 +32,7 @@ from vinetwin.errors import BackendUnavailable
 from vinetwin.render.backends import get_backend
 from vinetwin.servo import rendered_camera
 from vinetwin.sim.config import SimConfig
-from vinetwin.sim.rig import start_pose
+from vinetwin.sim.session import SimSpec, SimWorld, start_pose
 from vinetwin.sim.simulate import simulate
 from vinetwin.twin import Twin
 
@@ -50,10 +50,10 @@ class _Timed:
         self.name = backend.name
         self.seconds = 0.0
 
-    def render(self, T: Any) -> Any:
+    def render(self, T_vine_camera: Any) -> Any:
         t0 = time.perf_counter()
         try:
-            return self.backend.render(T)
+            return self.backend.render(T_vine_camera)
         finally:
             self.seconds += time.perf_counter() - t0
 
@@ -96,7 +96,7 @@ def run_twin(path: Path, duration: float) -> list[dict[str, Any]]:
     goal = np.asarray(pose.T_vine_camera, float)
     cut = twin.cut_point(pose.cut_point).point
     start = start_pose(
-        goal, cut, 0.04, 0.1, np.random.default_rng(0), twin.camera, twin.perception.max_depth
+        goal, cut, (0.04, 0.1), np.random.default_rng(0), twin.camera, twin.perception.max_depth
     )
     rows = []
     for name in BACKENDS:
@@ -108,12 +108,14 @@ def run_twin(path: Path, duration: float) -> list[dict[str, Any]]:
             continue
         build = time.perf_counter() - t0
         warm = SimConfig(duration=0.3, settle=0.0)
-        simulate(backend, goal, start, 0, twin.perception, warm)  # type: ignore[arg-type]
+        simulate(SimSpec(goal, start, warm, reference_seed=0), SimWorld(backend, twin.perception))
         backend.seconds = 0.0
         cfg = SimConfig(duration=duration, settle=0.0)
         with _Clock() as sensor:
             t0 = time.perf_counter()
-            run = simulate(backend, goal, start, 0, twin.perception, cfg)  # type: ignore[arg-type]
+            run = simulate(
+                SimSpec(goal, start, cfg, reference_seed=0), SimWorld(backend, twin.perception)
+            )
             wall = time.perf_counter() - t0
         backend.close()
         n = max(len(run.t), 1)

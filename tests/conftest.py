@@ -28,15 +28,15 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def pytest_configure(config: pytest.Config) -> None:
     k = int(config.getoption("--noise-stream"))
     if k:
-        from vinetwin import _kernels
+        from vinetwin.render import _sensor_kernels
 
-        numpy_stream = _kernels.standard_normals
+        numpy_stream = _sensor_kernels.standard_normals
 
         def other_stream(rng: np.random.Generator, n: int) -> np.ndarray:
             numpy_stream(rng, n)  # the caller's generator ends where it would have
             return np.random.default_rng([int(rng.integers(2**62)), k]).standard_normal(n)
 
-        _kernels.standard_normals = other_stream
+        _sensor_kernels.standard_normals = other_stream
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -76,7 +76,7 @@ def test_the_simulated_servo_starts_from_the_arrival_answer(
 
     from vinetwin.frames import invert
     from vinetwin.servo.config import RunnerConfig
-    from vinetwin.sim.rig import simulated_session
+    from vinetwin.sim.session import servo_session
 
     twin = Twin.load(sample_twin_dir)
     profile = tmp_path / "platform.json"
@@ -90,7 +90,7 @@ def test_the_simulated_servo_starts_from_the_arrival_answer(
     goal = np.asarray(pose.T_vine_camera)
     for arrival in (False, True):
         cfg = RunnerConfig(pose=pose.id, profile=str(profile), arrival=arrival, seed=3)
-        session = simulated_session(twin, pose, cfg)
+        session = servo_session(twin, pose, cfg)
         try:
             truth = invert(goal) @ session.robot.true_camera()  # type: ignore[union-attr]
             et, er = pose_error(session.servo.initial_guess, truth)

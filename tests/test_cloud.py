@@ -110,14 +110,14 @@ def test_statistical_outliers_grid_search_equals_the_tree(
     voxel-grid cloud of canes and a leaf, with far outliers the cells leave to the tree."""
     from scipy.spatial import KDTree
 
-    from vinetwin import _kernels
+    from vinetwin import _outlier_kernels
 
     t = rng.uniform(0, 0.2, 20_000)
     cane = np.c_[t, 0.01 * np.sin(20 * t), 0.2 + 0.002 * rng.normal(size=t.size)]
     leaf = np.c_[rng.uniform(-0.05, 0, (8000, 2)), 0.25 + rng.normal(0, 0.001, 8000)]
     far = rng.uniform(-0.3, 0.3, (40, 3)) + [0, 0, 0.3]
     pts, _ = voxel_downsample(np.vstack([cane, leaf, far]), voxel)
-    mean_d = _kernels.knn_mean_distance(pts, 16, 3 * voxel, 3, 2)
+    mean_d = _outlier_kernels.knn_mean_distance(pts, 16, 3 * voxel, 3, 2)
     tree_d = KDTree(pts).query(pts, k=16)[0].mean(axis=1)
     solved = ~np.isnan(mean_d)
     assert solved.mean() > 0.9 and (~solved).sum() >= 10  # the far points go to the tree
@@ -136,7 +136,7 @@ def test_fused_perception_pass_equals_the_two_steps(
     rounding, on a noisy scene with canes, a slanted leaf and flying pixels; and so does the
     chain's pass in 2 and 3 bands of rows run in threads and merged in order
     (`cloud._depth_voxels`)."""
-    from vinetwin import _kernels, cloud
+    from vinetwin import _cloud_kernels, cloud
 
     cam = d405("848x480")
     rng = np.random.default_rng(5)
@@ -148,21 +148,21 @@ def test_fused_perception_pass_equals_the_two_steps(
     depth[rng.random(depth.shape) < 0.02] = np.nan
     args = (depth, cam.fx, cam.fy, cam.cx, cam.cy, 1e-6, 0.4, 0.03, 2)
     o = (0.0005, -0.0003, 0.0001)
-    pts, nrm = _kernels.organised_points(*args, True)
-    a, an = _kernels.voxel_grid(pts, nrm, voxel, *o, True)
-    whole = _kernels.depth_voxel_band(*args, voxel, *o, 0, depth.shape[0])
-    b, bn = _kernels.merge_voxel_bands(*whole, np.array([len(whole[3])]))
+    pts, nrm = _cloud_kernels.organised_points(*args, True)
+    a, an = _cloud_kernels.voxel_grid(pts, nrm, voxel, *o, True)
+    whole = _cloud_kernels.depth_voxel_band(*args, voxel, *o, 0, depth.shape[0])
+    b, bn = _cloud_kernels.merge_voxel_bands(*whole, np.array([len(whole[3])]))
     assert len(a) > 1000
     np.testing.assert_allclose(b, a, rtol=0, atol=1e-15)
     np.testing.assert_allclose(bn, an, rtol=1e-12, atol=1e-18)
     calls: list[tuple[int, int]] = []
-    band = _kernels.depth_voxel_band
+    band = _cloud_kernels.depth_voxel_band
 
     def counted(*a: Any) -> Any:
         calls.append((a[-2], a[-1]))
         return band(*a)
 
-    monkeypatch.setattr(_kernels, "depth_voxel_band", counted)
+    monkeypatch.setattr(_cloud_kernels, "depth_voxel_band", counted)
     monkeypatch.setattr(cloud, "_MIN_BAND_PIXELS", 1000)
     cfg = PerceptionConfig(min_depth=0.0, max_depth=0.4, edge_threshold=0.03, voxel_size=voxel)
     for threads in (2, 3):
@@ -200,11 +200,11 @@ def test_depth_threshold_and_flying_pixels() -> None:
     assert np.all(np.einsum("ij,ij->i", cloud.normals, cloud.points) < 0)  # normals face the camera
     # the flying-pixel filter is what drops the smeared column: without it the deprojection
     # keeps it (perception then drops it too, as a rim without a normal: one pixel wide)
-    from vinetwin import _kernels
+    from vinetwin import _cloud_kernels
 
     args = (depth, cam.fx, cam.fy, cam.cx, cam.cy, 1e-6, 0.40)
-    raw, _ = _kernels.organised_points(*args, 0.0, 2, False)
-    filtered, _ = _kernels.organised_points(*args, 0.03, 2, False)
+    raw, _ = _cloud_kernels.organised_points(*args, 0.0, 2, False)
+    filtered, _ = _cloud_kernels.organised_points(*args, 0.03, 2, False)
     assert raw[:, 2].max() > 0.29 and filtered[:, 2].max() < 0.151
     no_filter = perceive(
         depth, cam, PerceptionConfig(max_depth=0.40, edge_threshold=0, outlier_rule="none"),
@@ -216,7 +216,7 @@ def test_depth_threshold_and_flying_pixels() -> None:
 def test_flying_pixel_mask_follows_its_rule_at_every_pixel(rng: np.random.Generator) -> None:
     """The compiled keep mask is the rule written with numpy: in range, and not the far side
     (z - zn > threshold * zn) of a jump to any valid 4-neighbour; borders, NaN and zeros too."""
-    from vinetwin import _kernels
+    from vinetwin import _cloud_kernels
 
     depth = rng.uniform(0.1, 0.5, (270, 480)).astype(np.float32)
     depth[rng.random(depth.shape) < 0.2] = 0.0
@@ -235,10 +235,10 @@ def test_flying_pixel_mask_follows_its_rule_at_every_pixel(rng: np.random.Genera
     for cuts in ((0, 270), (0, 101, 270)):  # one band of rows, and two
         keep = np.zeros(depth.shape, bool)
         for v0, v1 in itertools.pairwise(cuts):
-            _kernels._keep_rows(depth, dmin, dmax, t, keep, v0, v1)
+            _cloud_kernels._keep_rows(depth, dmin, dmax, t, keep, v0, v1)
         np.testing.assert_array_equal(keep, expected)
     keep = np.zeros(depth.shape, bool)  # no flying-pixel filter: the range alone
-    _kernels._keep_rows(depth, dmin, dmax, 0.0, keep, 0, 270)
+    _cloud_kernels._keep_rows(depth, dmin, dmax, 0.0, keep, 0, 270)
     np.testing.assert_array_equal(keep, ok)
     assert 0.2 < expected.mean() < 0.6
 

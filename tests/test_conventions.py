@@ -79,7 +79,7 @@ def test_pyrender_opengl_camera_pose() -> None:
     scene.add(cam, pose=cv.T_world_camera_opengl(T_WORLD_CAMERA))
     r = pyrender.OffscreenRenderer(CAM.width, CAM.height)
     # its delete would otherwise terminate the EGL display MuJoCo shares in this process
-    from vinetwin.render.backends import _keep_egl_display_alive
+    from vinetwin.render.backends._egl import _keep_egl_display_alive
 
     _keep_egl_display_alive(r)
     try:

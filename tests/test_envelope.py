@@ -272,8 +272,10 @@ def test_an_interrupt_inside_a_kernel_stops_a_batch_instead_of_failing_one_job()
 def test_an_interrupt_inside_a_kernel_stops_the_servo_and_the_command(
     vine_views, monkeypatch: pytest.MonkeyPatch
 ) -> None:  # type: ignore[no-untyped-def]
+    import logging
+
     import vinetwin.servo.step as step
-    from vinetwin.cli import exit_status
+    from vinetwin.errors import exit_status
     from vinetwin.servo.step import Servo
 
     sv = Servo(vine_views.reference("p1"), camera=vine_views.twin.camera)
@@ -284,7 +286,7 @@ def test_an_interrupt_inside_a_kernel_stops_the_servo_and_the_command(
     monkeypatch.setattr(step, "perceive", interrupted)
     with pytest.raises(KeyboardInterrupt):
         sv.step_depth(np.zeros((480, 848), np.float32), stamp=0.0)
-    assert exit_status(_kernel_interrupt()) == 130
+    assert exit_status(_kernel_interrupt(), logging.getLogger()) == 130
 
 
 # ----------------------------------------------------------------------------- 8 the port

@@ -26,8 +26,8 @@ from vinetwin.sim.config import (
     load_profile,
 )
 from vinetwin.sim.field import draw_field
-from vinetwin.sim.rig import believed_goal, start_pose
 from vinetwin.sim.robots import KinematicRobot
+from vinetwin.sim.session import SimSpec, SimWorld, believed_goal, start_pose
 from vinetwin.sim.simulate import simulate
 
 FIELD = PROFILES["field"]
@@ -167,20 +167,23 @@ def test_a_field_run_is_reproducible_from_its_seed(vine_views: VineViews) -> Non
     pose = twin.poses[0]
     cut = twin.cut_point(pose.cut_point).point
     start = start_pose(
-        pose.T_vine_camera, cut, 0.04, 0.1, np.random.default_rng(2), twin.camera, 0.4
+        pose.T_vine_camera, cut, (0.04, 0.1), np.random.default_rng(2), twin.camera, 0.4
     )
     no_twin = replace(FIELD, sources=tuple(s for s in FIELD_SOURCES if s != "twin"))
     cfg = SimConfig(variant="point_to_plane", duration=3.0, fixed_period=1 / 30, settle=0.0,
                     profile=no_twin, seed=4)  # fmt: skip
     runs = [
-        simulate(vine_views.backend, pose.T_vine_camera, start, 1, twin.perception, cfg)
+        simulate(
+            SimSpec(pose.T_vine_camera, start, cfg, reference_seed=1),
+            SimWorld(vine_views.backend, twin.perception),
+        )
         for _ in range(2)
     ]
     assert runs[0].t == runs[1].t and runs[0].error_t == runs[1].error_t
     ideal = simulate(
-        vine_views.backend, pose.T_vine_camera, start, 1, twin.perception,
-        replace(cfg, profile=FieldProfile()),
-    )  # fmt: skip
+        SimSpec(pose.T_vine_camera, start, replace(cfg, profile=FieldProfile()), reference_seed=1),
+        SimWorld(vine_views.backend, twin.perception),
+    )
     assert runs[0].error_t != ideal.error_t
 
 
@@ -238,9 +241,9 @@ def test_check_reference_passes_an_unmoved_vine_and_flags_a_moved_or_changed_one
     import shutil
 
     from vinetwin.cli import main
+    from vinetwin.render.reference import reference_for
     from vinetwin.servo.check import check_reference, live_depths
     from vinetwin.servo.config import CheckConfig
-    from vinetwin.servo.runner import reference_cloud
     from vinetwin.twin.model import Twin
 
     twin_dir = tmp_path / "vine.twin"
@@ -260,7 +263,7 @@ def test_check_reference_passes_an_unmoved_vine_and_flags_a_moved_or_changed_one
     for d in depths:
         d[:, : d.shape[1] // 2] = 0.0  # half the view holds nothing the twin has there
     changed, _ = check_reference(
-        twin, twin.poses[0].id, depths, reference_cloud(twin, twin.poses[0].id), cfg
+        twin, twin.poses[0].id, depths, reference_for(twin, twin.poses[0].id).cloud, cfg
     )
     assert changed.verdict == "vine changed here" and "covers" in changed.reason, changed
 

@@ -325,7 +325,7 @@ def test_a_mutated_sidecar_is_rendered_again_or_kept_never_a_crash(
     """The servo's reader refuses a sidecar that does not vouch for its clouds by name; export
     renders such a reference again (or keeps it when the mutation left it valid)."""
     from vinetwin.render.export import export_references
-    from vinetwin.servo.runner import reference_cloud
+    from vinetwin.render.reference import reference_for
     from vinetwin.twin import Twin
 
     twin = Twin.load(exported[0])
@@ -333,7 +333,7 @@ def test_a_mutated_sidecar_is_rendered_again_or_kept_never_a_crash(
     good = json.loads(exported[1])
     sidecar.write_text(mutate(good, data))
     try:
-        reference_cloud(twin, "p1")
+        reference_for(twin, "p1")
     except VinetwinError:
         pass
     report = export_references(twin, ["p1"], workers=1)

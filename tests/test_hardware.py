@@ -30,7 +30,7 @@ from vinetwin.capture.sources import (
     quantize_depth,
 )
 from vinetwin.cli import main
-from vinetwin.render.reference import pose_seed
+from vinetwin.render.reference import reference_for
 from vinetwin.servo.config import ServoConfig
 from vinetwin.servo.loop import CycleLog, LoopConfig, read_log, run_loop
 from vinetwin.servo.robot import (
@@ -43,9 +43,10 @@ from vinetwin.servo.robot import (
 )
 from vinetwin.servo.step import make_servo
 from vinetwin.sim.config import SimConfig
-from vinetwin.sim.rig import start_pose
 from vinetwin.sim.robots import KinematicRobot
+from vinetwin.sim.session import SimSpec, SimWorld, start_pose
 from vinetwin.sim.simulate import simulate
+from vinetwin.twin.model import Twin
 
 rs = pytest.importorskip("pyrealsense2")
 
@@ -493,14 +494,20 @@ def test_dry_run_on_recorded_frames_gives_the_simulations_twists(
     pose = twin.poses[0]
     cut = twin.cut_point(pose.cut_point).point
     start = start_pose(
-        pose.T_vine_camera, cut, 0.04, 0.1, np.random.default_rng(2), twin.camera, 0.4
+        pose.T_vine_camera, cut, (0.04, 0.1), np.random.default_rng(2), twin.camera, 0.4
     )
     sim_log = CycleLog(tmp_path / "sim.jsonl", twin=str(twin_dir), variant="point_to_plane")
+    # the pose's reference as the replay gets it (`reference_for`, the one owner): not exported,
+    # so rendered with the twin's settings, the same both times
+    reference = reference_for(Twin.load(twin_dir), pose.id)
     run = simulate(
-        vine_views.backend, pose.T_vine_camera, start, pose_seed(0, pose.id), twin.perception,
-        SimConfig(duration=2.0, settle=0.0, fixed_period=1 / 30),
-        log=sim_log, record=tmp_path / "rec",
-    )  # fmt: skip
+        SimSpec(
+            pose.T_vine_camera, start, SimConfig(duration=2.0, settle=0.0, fixed_period=1 / 30)
+        ),
+        SimWorld(vine_views.backend, twin.perception, reference=reference),
+        log=sim_log,
+        record=tmp_path / "rec",
+    )
     sim_log.close()
     assert len(run.t) >= 55
     rc = main([
@@ -599,7 +606,7 @@ def test_servo_closes_the_loop_on_a_franka_through_franky_sim(
     from franky_sim.mujoco_simulator import MujocoSimulator
 
     from vinetwin.servo.robot import FrankyTransport
-    from vinetwin.servo.runner import RunnerConfig, run_pose
+    from vinetwin.servo.runner import RunnerConfig, RunOutputs, run_pose
     from vinetwin.twin.model import Twin
 
     twin_dir = tmp_path / "t.twin"
@@ -628,7 +635,9 @@ def test_servo_closes_the_loop_on_a_franka_through_franky_sim(
                 # docstring): the follow check's 30% would stop it as a real arm that lags
                 loop=LoopConfig(duration=8.0, settle=1.0, follow_fraction=0.05),
             )  # fmt: skip
-            summary, path = run_pose(Twin.load(twin_dir), cfg, log_path=tmp_path / "franka.jsonl")
+            summary, path = run_pose(
+                Twin.load(twin_dir), cfg, RunOutputs(tmp_path / "franka.jsonl")
+            )
     header, cycles, _ = read_log(path)
     goal = np.asarray(header["T_base_goal"])
     err = [fr.pose_error(np.asarray(c["T_base_camera"]), goal) for c in cycles]

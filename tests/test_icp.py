@@ -16,6 +16,7 @@ from vinetwin import frames as fr
 from vinetwin.camera import d405
 from vinetwin.cloud import Cloud
 from vinetwin.registration import _kernels as K
+from vinetwin.registration import _search_kernels as S
 from vinetwin.registration.icp import ICP, ICPConfig, view_edge_mask
 
 VARIANTS = ["point_to_point", "lm", "point_to_plane", "symmetric"]
@@ -134,8 +135,8 @@ def test_tree_gives_the_exact_nearest_within_reach(dmax: float) -> None:
     ref[:40] = ref[40:80]  # duplicates
     src = np.vstack([ref[:1000] + rng.normal(0, 0.003, (1000, 3)), rng.uniform(-1, 1, (300, 3))])
     T = fr.random_pose(rng, 0.01, 0.05)
-    tree = K.NNTree(ref)
-    q, idx, d2 = K.associate(src, T, tree.arrays, dmax, 2, K.NO_MEMO)
+    tree = S.NNTree(ref)
+    q, idx, d2 = S.associate(src, T, tree.arrays, dmax, 2, S.NO_MEMO)
     d_ref, _ = KDTree(ref).query(fr.transform_points(T, src), distance_upper_bound=dmax)
     found = np.isfinite(d_ref)
     assert np.array_equal(idx >= 0, found)
@@ -157,17 +158,17 @@ def test_memoised_tree_answers_stay_exact() -> None:
     ref = rng.uniform(-0.05, 0.05, (4000, 3))
     ref[:30] = ref[30:60]  # duplicates
     src = ref[rng.choice(len(ref), 1500)] + rng.normal(0, 0.002, (1500, 3))
-    tree = K.NNTree(ref)
+    tree = S.NNTree(ref)
     exact = KDTree(tree.points)
     n, dmax = len(src), 0.005
-    memo = K.new_memo(n)
+    memo = S.new_memo(n)
     q, idx, d2 = np.empty((n, 3)), np.empty(n, np.int64), np.empty(n)
     T = np.eye(4)
     skipped = []
     for step in (0.0, 1e-5, 3e-5, 1e-4, 0.01, 2e-5, 0.0, 3e-4, 1e-5):
         T = fr.random_pose(rng, step, step / 0.1) @ T
         where_before = memo[1].copy()
-        K._associate_range(src, T, tree.arrays, dmax, 0, n, q, idx, d2, K.NO_PROJECTIVE, memo)
+        S._associate_range(src, T, tree.arrays, dmax, 0, n, q, idx, d2, S.NO_PROJECTIVE, memo)
         d_ref, _ = exact.query(q, distance_upper_bound=dmax)
         found = np.isfinite(d_ref)
         assert np.array_equal(idx >= 0, found)
@@ -417,9 +418,9 @@ def test_symmetric_false_convergence_on_the_sample_is_named(
     the reference, which `min_overlap` lets through. Under streams 2 and 4 the answer turned
     68-72 deg from its guess: `max_rotation_correction` names it. With the check off, the same
     registration reports success 78-88 mm from the truth. No pose is a false success."""
-    from vinetwin import _kernels
+    from vinetwin.render import _sensor_kernels
 
-    numpy_stream = _kernels.standard_normals
+    numpy_stream = _sensor_kernels.standard_normals
     named = 0
     for k in (2, 4):
 
@@ -427,7 +428,7 @@ def test_symmetric_false_convergence_on_the_sample_is_named(
             numpy_stream(rng, n)  # as tests/conftest.py's --noise-stream
             return np.random.default_rng([int(rng.integers(2**62)), k]).standard_normal(n)
 
-        monkeypatch.setattr(_kernels, "standard_normals", stream)
+        monkeypatch.setattr(_sensor_kernels, "standard_normals", stream)
         views = VineViews(sample_twin_dir)
         for pose, ref, cur, D in views.cases(0.05, 10.0, per_pose=1):
             make = functools.partial(ICPConfig.coarse_to_fine, variant="symmetric")
@@ -488,8 +489,8 @@ def test_projective_association_is_the_nearest_within_its_window(window: int) ->
     Z = 0.2 + 0.02 * np.sin(X / 0.02) * np.cos(Y / 0.03)
     front = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
     ref = np.vstack([front, front[::3] * 1.15])
-    tree = K.NNTree(ref)
-    idx_ = K.ProjectiveIndex(
+    tree = S.NNTree(ref)
+    idx_ = S.ProjectiveIndex(
         tree.points, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, 0.002, window
     )
     src = ref[rng.choice(len(ref), 2000)] + rng.normal(0, 0.0015, (2000, 3))
@@ -497,7 +498,7 @@ def test_projective_association_is_the_nearest_within_its_window(window: int) ->
     dmax = 0.005
     n = len(src)
     q, idx, d2 = np.empty((n, 3)), np.empty(n, np.int64), np.empty(n)
-    K._associate_range(src, T, tree.arrays, dmax, 0, n, q, idx, d2, idx_.arrays, K.NO_MEMO)
+    S._associate_range(src, T, tree.arrays, dmax, 0, n, q, idx, d2, idx_.arrays, S.NO_MEMO)
 
     def cell(p: np.ndarray) -> np.ndarray:
         u = (cam.fx * p[:, 0] / p[:, 2] + cam.cx) / idx_.scale

@@ -13,7 +13,7 @@ from vinetwin import _lazy
 from vinetwin import frames as fr
 from vinetwin.sim.config import SimConfig
 from vinetwin.sim.panda import PANDA_DIR, PandaArm, goal_placement
-from vinetwin.sim.rig import start_pose
+from vinetwin.sim.session import SimSpec, SimWorld, start_pose
 from vinetwin.sim.simulate import simulate
 
 # Franka's published (modified) DH parameters: a, d, alpha per joint, then the flange
@@ -92,7 +92,7 @@ def test_joint_limits_and_velocity_limits_hold() -> None:
 def scenes(views: VineViews) -> dict[str, object]:
     """Every MuJoCo scene of the project, compiled."""
     mj = _lazy.mujoco()
-    from vinetwin.render.backends import vine_scene_xml
+    from vinetwin.render.backends.mujoco_gl import vine_scene_xml
 
     mesh = views.twin.load_mesh()
     xml, assets = vine_scene_xml(
@@ -144,9 +144,12 @@ def test_panda_servos_to_the_pruning_pose(vine_views: VineViews, robot: str) -> 
         vine=(mesh.vertices, mesh.faces),
         T_base_vine=goal_placement(goal),
     )
-    start = start_pose(goal, cut, 0.05, 0.15, np.random.default_rng(3), twin.camera, 0.4)
+    start = start_pose(goal, cut, (0.05, 0.15), np.random.default_rng(3), twin.camera, 0.4)
     cfg = SimConfig(variant="symmetric", duration=12.0, fixed_period=1 / 30)
-    run = simulate(vine_views.backend, goal, start, 1, twin.perception, cfg, arm=arm)
+    run = simulate(
+        SimSpec(goal, start, cfg, reference_seed=1),
+        SimWorld(vine_views.backend, twin.perception, arm=arm),
+    )
     s = run.summary()
     assert s["converged"], s
     assert s["final_translation"] < 0.002 and s["final_rotation"] < 0.01

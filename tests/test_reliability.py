@@ -250,7 +250,7 @@ def test_the_web_app_warns_when_it_listens_beyond_loopback(
 # ----------------------------------------------------------------------------- 9 references
 def test_a_corrupted_reference_is_rendered_again_and_refused_by_the_servo(twin_dir: Path) -> None:
     from vinetwin.render.export import export_references
-    from vinetwin.servo.runner import reference_cloud
+    from vinetwin.render.reference import reference_for
 
     t = Twin.load(twin_dir)
     assert export_references(t, ["p1", "p2"], workers=1).count("rendered") == 2
@@ -260,11 +260,11 @@ def test_a_corrupted_reference_is_rendered_again_and_refused_by_the_servo(twin_d
     good = ply.read_bytes()
     ply.write_bytes(good[: len(good) // 2])  # truncated
     with pytest.raises(InputError, match="does not match the hash"):
-        reference_cloud(t, "p1")
+        reference_for(t, "p1")
     again = export_references(t, ["p1", "p2"], workers=1)
     assert [r.status for r in again.results] == ["rendered", "skipped"]
     assert ply.read_bytes() == good  # the same seed renders the same cloud
-    assert len(reference_cloud(t, "p1").points) > 100
+    assert len(reference_for(t, "p1").cloud.points) > 100
 
 
 def test_export_flushes_once_and_renders_again_what_a_power_loss_left_empty(
@@ -354,19 +354,21 @@ EXPECTED_REFUSAL = {
 def test_injected_faults_never_move_the_arm_on_an_untrusted_frame(vine_views, cls: str) -> None:  # type: ignore[no-untyped-def]
     from vinetwin.render.reference import pose_seed
     from vinetwin.sim.config import FaultConfig, SimConfig
-    from vinetwin.sim.rig import start_pose
+    from vinetwin.sim.session import SimSpec, SimWorld, start_pose
     from vinetwin.sim.simulate import simulate
 
     twin = vine_views.twin
     pose = twin.poses[0]
     cut = twin.cut_point(pose.cut_point).point
     start = start_pose(
-        pose.T_vine_camera, cut, 0.02, 0.05, np.random.default_rng(0), twin.camera, 0.4
+        pose.T_vine_camera, cut, (0.02, 0.05), np.random.default_rng(0), twin.camera, 0.4
     )
     faults = FaultConfig(classes=(cls,), rate=0.25 if cls != "jerk" else 0.4, seed=3)
     cfg = SimConfig(duration=3.0, settle=0.0, fixed_period=1 / 30, faults=faults)
-    run = simulate(vine_views.backend, pose.T_vine_camera, start, pose_seed(0, pose.id),
-                   twin.perception, cfg)  # fmt: skip
+    run = simulate(
+        SimSpec(pose.T_vine_camera, start, cfg, reference_seed=pose_seed(0, pose.id)),
+        SimWorld(vine_views.backend, twin.perception),
+    )
     f = run.summary()["faults"]
     assert f["commands_over_limit"] == 0 and f["motion_on_untrusted"] == 0, f
     events = f["classes"][cls]["events"]

@@ -464,7 +464,7 @@ def test_mujoco_renders_from_any_thread_one_at_a_time(
 def test_mujoco_renders_a_mesh_beyond_its_stl_limit() -> None:
     """MuJoCo reads at most 200k faces from one STL file: a bigger vine goes in as pieces, and
     renders as Open3D does."""
-    from vinetwin.render.backends import MUJOCO_STL_FACES
+    from vinetwin.render.backends.mujoco_gl import MUJOCO_STL_FACES
 
     ball = trimesh.creation.icosphere(subdivisions=7, radius=0.05)  # 327,680 faces
     assert len(ball.faces) > MUJOCO_STL_FACES
@@ -483,7 +483,7 @@ def test_mujoco_renders_a_mesh_beyond_its_stl_limit() -> None:
 def test_frustum_test_keeps_what_shows_and_drops_what_cannot() -> None:
     """Boxes wholly behind one side of the view are dropped; every box holding a point that
     projects into the image (or lies within the margin of it) is kept."""
-    from vinetwin.render.backends import frustum_hits
+    from vinetwin.render.backends._pieces import frustum_hits
 
     cam = d405("848x480")
 
@@ -575,7 +575,9 @@ def test_mujoco_draws_the_vine_itself_where_our_buffers_cannot_be_made(
     if backends._cannot_start("mujoco"):
         pytest.skip(backends._cannot_start("mujoco"))
     twin, mesh = sample
-    monkeypatch.setattr(backends._VineBuffers, "create", classmethod(lambda cls, *a: None))
+    monkeypatch.setattr(
+        backends.mujoco_gl._VineBuffers, "create", classmethod(lambda cls, *a: None)
+    )
     fallback = backends.MujocoBackend(mesh.vertices, mesh.faces, twin.camera)
     assert fallback._vine is None and len(fallback._geoms) == fallback.pieces
     mj = backends.MujocoBackend(mesh.vertices, mesh.faces, twin.camera, own_draw=False)
@@ -588,7 +590,7 @@ def test_mujoco_draws_the_vine_itself_where_our_buffers_cannot_be_made(
 
 
 def test_stl_bytes_round_trip() -> None:
-    from vinetwin.render.backends import stl_bytes
+    from vinetwin.render.backends.mujoco_gl import stl_bytes
 
     ball = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
     import io
@@ -699,28 +701,28 @@ def test_compiled_d405_model_reproduces_the_numpy_formulation(
 def test_compiled_normal_draws_are_numpys() -> None:
     """The D405 model's normal draws, made in compiled code, are numpy's `standard_normal`'s to
     the bit and leave the generator where numpy leaves it (the next draws agree too)."""
-    from vinetwin import _kernels
+    from vinetwin.render import _sensor_kernels
 
     for seed, n in ((0, 1), (5, 1000), (7, 140_000)):
         a, b = np.random.default_rng(seed), np.random.default_rng(seed)
-        np.testing.assert_array_equal(_kernels.standard_normals(a, n), b.standard_normal(n))
+        np.testing.assert_array_equal(_sensor_kernels.standard_normals(a, n), b.standard_normal(n))
         np.testing.assert_array_equal(a.random(7), b.random(7))
 
 
 @pytest.mark.parametrize(("shape", "w"), [((37, 53), 1), ((40, 31), 2), ((25, 1), 1), ((1, 30), 3)])
 def test_silhouette_search_matches_scipy_window_filters(shape: tuple[int, int], w: int) -> None:
-    """`_kernels.d405_edges` (separable vectorised window extremes) finds the pixels, nearest
+    """`_sensor_kernels.d405_edges` (separable vectorised window extremes) finds the pixels, nearest
     and farthest depths that scipy's clipped window filters give, on random depth with holes,
     jumps and images one pixel wide."""
     from scipy import ndimage
 
-    from vinetwin import _kernels
+    from vinetwin.render import _sensor_kernels
 
     rng = np.random.default_rng(sum(shape) + w)
     d = rng.uniform(0.1, 0.3, shape).astype(np.float32)
     d[rng.random(shape) < 0.3] = 0.0
     d[rng.random(shape) < 0.1] *= 1.5
-    ev, eu, nv, fv = _kernels.d405_edges(d, w, np.float32(0.05))
+    ev, eu, nv, fv = _sensor_kernels.d405_edges(d, w, np.float32(0.05))
     size = 2 * w + 1
     near = ndimage.minimum_filter(np.where(d > 0, d, np.inf), size, mode="constant", cval=np.inf)
     far = ndimage.maximum_filter(d, size, mode="constant", cval=0)
@@ -735,6 +737,8 @@ def test_silhouette_search_matches_scipy_window_filters(shape: tuple[int, int], 
     # in bands of rows (each reads w rows beyond its own), joined in order: the same pixels
     for split in ((0, shape[0] // 3, shape[0]), (0, 1, shape[0] // 2, shape[0])):
         cuts = sorted(set(split))  # the one-row image: a single band
-        bands = [_kernels.d405_edges_rows(d, w, np.float32(0.05), a, b) for a, b in pairwise(cuts)]
+        bands = [
+            _sensor_kernels.d405_edges_rows(d, w, np.float32(0.05), a, b) for a, b in pairwise(cuts)
+        ]
         for k, want in enumerate((ev, eu, nv, fv)):
             np.testing.assert_array_equal(np.concatenate([b[k] for b in bands]), want)

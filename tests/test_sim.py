@@ -14,7 +14,7 @@ from vinetwin.sim import report
 from vinetwin.sim.campaign import run_campaign
 from vinetwin.sim.config import CampaignConfig, Disturbance, SimConfig
 from vinetwin.sim.paper import PRESETS
-from vinetwin.sim.rig import start_pose
+from vinetwin.sim.session import SimSpec, SimWorld, start_pose
 from vinetwin.sim.simulate import SimRun, simulate
 
 
@@ -24,7 +24,7 @@ def _goal_and_start(vine_views: VineViews, seed: int) -> tuple[np.ndarray, np.nd
     pose = twin.poses[0]
     cut = twin.cut_point(pose.cut_point).point
     rng = np.random.default_rng(seed)
-    start = start_pose(pose.T_vine_camera, cut, 0.04, 0.1, rng, twin.camera, 0.4)
+    start = start_pose(pose.T_vine_camera, cut, (0.04, 0.1), rng, twin.camera, 0.4)
     return pose.T_vine_camera, start
 
 
@@ -35,7 +35,7 @@ def test_start_poses_have_the_preset_errors_and_see_the_cut(vine_views: VineView
     cut = twin.cut_point(pose.cut_point).point
     cam = twin.camera
     for i, (t, r) in enumerate(PRESETS["table1"]):
-        S = start_pose(goal, cut, t, r, np.random.default_rng(i), cam, twin.perception.max_depth)
+        S = start_pose(goal, cut, (t, r), np.random.default_rng(i), cam, twin.perception.max_depth)
         dt, dr = fr.pose_error(S, goal)
         assert dt == pytest.approx(t, abs=1e-9) and dr == pytest.approx(r, abs=1e-9)
         p = fr.transform_points(fr.invert(S), cut[None])[0]
@@ -50,7 +50,10 @@ def test_converges_then_recovers_from_the_vine_moving(vine_views: VineViews) -> 
     goal, start = _goal_and_start(vine_views, seed=0)
     dist = Disturbance(time=7.0, translation=(0.02, 0.0, 0.0), rotation=(0.0, 0.03, 0.0))
     cfg = SimConfig(variant="symmetric", duration=14.0, settle=0.0, fixed_period=1 / 30)
-    run = simulate(vine_views.backend, goal, start, 1, twin.perception, cfg, disturbance=dist)
+    run = simulate(
+        SimSpec(goal, start, cfg, reference_seed=1, disturbance=dist),
+        SimWorld(vine_views.backend, twin.perception),
+    )
     t = np.asarray(run.t)
     et, er = np.asarray(run.error_t), np.asarray(run.error_r)
     before = np.nonzero(t < 7.0)[0][-1]
@@ -80,7 +83,10 @@ def test_slow_processing_holds_each_twist_longer(vine_views: VineViews) -> None:
             gain=3.0,
             gain_far=3.0,
         )
-        runs[period] = simulate(vine_views.backend, goal, start, 1, twin.perception, cfg)
+        runs[period] = simulate(
+            SimSpec(goal, start, cfg, reference_seed=1),
+            SimWorld(vine_views.backend, twin.perception),
+        )
     fast, slow = runs[1 / 30].summary(), runs[0.25].summary()
     assert fast["loop_rate_hz"] == pytest.approx(30, rel=0.02)
     assert slow["loop_rate_hz"] == pytest.approx(4, rel=0.05)
@@ -194,13 +200,17 @@ def test_an_arm_that_does_not_follow_is_a_named_stop(
     goal, start = _goal_and_start(vine_views, seed=0)
     cfg = SimConfig(variant="point_to_plane", duration=6.0, settle=0.0, fixed_period=1 / 30)
     monkeypatch.setattr(KinematicRobot, "_apply", lambda self, twist, dt: None)
-    run = simulate(vine_views.backend, goal, start, 1, twin.perception, cfg)
+    run = simulate(
+        SimSpec(goal, start, cfg, reference_seed=1), SimWorld(vine_views.backend, twin.perception)
+    )
     assert run.lost.startswith("the arm does not follow: the camera moved 0.0 mm"), run.lost
     window = LoopConfig().follow_window
     assert window - 1e-6 <= run.t[-1] <= window + 0.2, run.t[-1]
     assert report._stop(run.summary()) == "the arm does not follow"
     monkeypatch.undo()
-    run = simulate(vine_views.backend, goal, start, 1, twin.perception, cfg)
+    run = simulate(
+        SimSpec(goal, start, cfg, reference_seed=1), SimWorld(vine_views.backend, twin.perception)
+    )
     assert run.lost == "" and run.summary()["converged"], run.summary()
 
 

@@ -1,7 +1,8 @@
 """Bands of image rows run on threads: the compiled per-pixel passes of perception, the D405
-model and the depth readback (`vinetwin._kernels`) split an image into bands of rows, run one
-in the calling thread and the others on a pool of Python threads (the kernels release the
-GIL), and join the results in row order.
+model and the depth readback (`vinetwin._cloud_kernels`, `render._sensor_kernels`,
+`render._zbuffer_kernels`) split an image into bands of rows, run one in the calling thread
+and the others on a pool of Python threads (the kernels release the GIL), and join the results
+in row order.
 
 Python threads rather than numba's parallel regions: with numba's parallel regions in
 perception, the web app's click handler (a thread) spun for good in the test suite, and a

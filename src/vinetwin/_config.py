@@ -6,8 +6,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import typing
 from typing import Any, Self
+
+from vinetwin.errors import InputError
 
 
 def json_default(x: Any) -> Any:
@@ -17,6 +20,21 @@ def json_default(x: Any) -> Any:
     if isinstance(x, np.generic | np.ndarray):
         return x.tolist()
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def _cli_suppress() -> object:
+    """tyro's `conf.Suppress`, or a plain object where tyro is not installed (the library does
+    not need it)."""
+    try:
+        import tyro
+    except ImportError:  # pragma: no cover - tyro is a dependency of the command line
+        return object()
+    return tyro.conf.Suppress
+
+
+#: A settings group the command line sets as a group of its own (`--arrival-settings.NAME`),
+#: not among the flattened options of the config that carries it, where its names would clash.
+CLI_OWN_GROUP = _cli_suppress()
 
 
 class JsonFields:
@@ -98,3 +116,34 @@ def _hints(cls: type) -> dict[str, Any]:
         return typing.get_type_hints(cls)
     except (NameError, TypeError):  # an annotation only known to type checkers
         return {}
+
+
+def check_finite(config: object, names: tuple[str, ...], positive: bool = False) -> None:
+    """Raises InputError naming the first of `names` that is not a finite number > 0
+    (`positive`) or >= 0: a limit that NaN, infinity, a negative number or a string (a profile
+    file's "0.5") would switch off."""
+    for name in names:
+        v = getattr(config, name)
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise InputError(f"{name} must be a number, got {v!r}")
+        if not (math.isfinite(v) and (v > 0 if positive else v >= 0)):
+            raise InputError(
+                f"{name} must be {'positive' if positive else '>= 0'} and finite, got {v}"
+            )
+
+
+def check_counts(config: object, names: tuple[str, ...], ceiling: int = 2**32) -> None:
+    """Raises InputError naming the first of `names` (seeds, counts of workers) that is not an
+    integer in [0, ceiling)."""
+    for name in names:
+        v = getattr(config, name)
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < ceiling:
+            raise InputError(f"{name} must be an integer in [0, {ceiling}), got {v!r}")
+
+
+def check_at_most(config: object, ceilings: dict[str, float], why: str) -> None:
+    """Raises InputError naming the first field of `ceilings` above its ceiling, and `why`."""
+    for name, ceiling in ceilings.items():
+        v = getattr(config, name)
+        if v > ceiling:
+            raise InputError(f"{name} {v:g} is above {ceiling:g} {why}")

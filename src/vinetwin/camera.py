@@ -26,7 +26,9 @@ from vinetwin._config import JsonFields
 from vinetwin.errors import CameraError, InputError
 from vinetwin.frames import Array, as_points
 
-#: Minimum depth (m) of the D405 by resolution, from Intel's datasheet.
+#: The D405's depth modes (width, height) and their minimum depth (m), from Intel's datasheet:
+#: the one list of modes (the presets, the live source and fusion's depth range read it). The
+#: datasheet gives no minimum for the 424x240 mode, so it is not offered.
 D405_MIN_DEPTH: dict[tuple[int, int], float] = {
     (1280, 720): 0.100,
     (848, 480): 0.070,
@@ -34,6 +36,9 @@ D405_MIN_DEPTH: dict[tuple[int, int], float] = {
     (640, 360): 0.055,
     (480, 270): 0.045,
 }
+#: An unlisted mode is given the largest minimum depth of the listed ones: nearer depth is called
+#: invalid, never trusted.
+D405_MIN_DEPTH_UNLISTED = max(D405_MIN_DEPTH.values())
 D405_HFOV_DEG = 87.0
 D405_VFOV_DEG = 58.0
 D405_BASELINE_M = 0.018
@@ -58,7 +63,7 @@ class CameraModel(JsonFields):
     """Principal point x, pixels (pixel centres at integer coordinates)."""
     cy: float
     """Principal point y, pixels."""
-    min_depth: float = 0.07
+    min_depth: float = D405_MIN_DEPTH[(848, 480)]
     """Smallest depth the sensor reports, metres (closer surfaces read as invalid)."""
     max_depth: float = D405_MAX_DEPTH_M
     """Largest depth the sensor reports, metres."""
@@ -217,13 +222,13 @@ class CameraModel(JsonFields):
             fy=float(get("fy")),
             cx=float(get("ppx")),
             cy=float(get("ppy")),
-            min_depth=D405_MIN_DEPTH.get((w, h), 0.07),
+            min_depth=D405_MIN_DEPTH.get((w, h), D405_MIN_DEPTH_UNLISTED),
             depth_unit=float(depth_scale),
             name=name,
         )
 
 
-D405_RESOLUTIONS = ("1280x720", "848x480", "640x480", "640x360", "480x270")
+D405_RESOLUTIONS = tuple(f"{w}x{h}" for w, h in D405_MIN_DEPTH)
 
 
 def d405(resolution: str = "848x480", **overrides: Any) -> CameraModel:

@@ -1,30 +1,33 @@
-"""The `vinetwin` command: argument definitions and calls. Each subcommand is a dataclass parsed
-by tyro that nests the library's config dataclasses (flags without a prefix): every setting has
-one declaration and one default, in the library. `run()` imports lazily: `--help` stays fast."""
+"""The `vinetwin` command: argument definitions and calls. Each subcommand is a dataclass parsed by
+tyro that nests the library's config dataclasses: every setting has one declaration and one
+default, in the library. `run()` imports lazily: `--help` stays fast. The jobs are library calls."""
 
 from __future__ import annotations
 
 import logging
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
 
 from vinetwin.capture.topics import RosTopics
-from vinetwin.errors import VinetwinError
+from vinetwin.errors import exit_status
+from vinetwin.executor import ClusterConfig
+from vinetwin.files import refuse_existing_json
 from vinetwin.progress import with_progress
-from vinetwin.reconstruct.pipeline import ReconstructConfig
-from vinetwin.servo.config import CheckConfig, RunnerConfig
+from vinetwin.reconstruct.config import OdometryConfig, ReconstructConfig
+from vinetwin.render.backends import BackendName
+from vinetwin.servo.config import ArrivalConfig, CheckConfig, RunnerConfig
 from vinetwin.sim.config import CampaignConfig, FidelityConfig, ValidateConfig
 from vinetwin.web.config import WebConfig
 
 log = logging.getLogger("vinetwin")
 
-Positional = tyro.conf.Positional
-Nested = tyro.conf.OmitArgPrefixes
-BackendChoice = Literal["auto", "open3d", "pyrender", "mujoco", "raster"]
+Positional, Nested = tyro.conf.Positional, tyro.conf.OmitArgPrefixes
+#: "auto" or a render backend (`render.backends.BACKENDS`, where the names are declared).
+BackendChoice = Literal["auto"] | BackendName
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -97,21 +100,6 @@ class Info:
 
 
 @dataclass(frozen=True, kw_only=True)
-class Cluster:
-    """Where batch jobs run."""
-
-    ray: bool = False
-    """Run the jobs on a local Ray started on this machine (pip install 'vinetwin[ray]')."""
-    ray_address: str = ""
-    """Run the jobs on this Ray cluster (HOST:6379 or auto; same twin paths on every node)."""
-
-    def executor(self, workers: int):  # type: ignore[no-untyped-def]
-        from vinetwin.executor import ExecutorConfig
-
-        return ExecutorConfig.from_flags(self.ray, self.ray_address, workers)
-
-
-@dataclass(frozen=True, kw_only=True)
 class Export:
     """Render each pruning pose's reference cloud into TWIN/references (PLY, PCD, JSON), for one
     twin or every twin of a vineyard folder; resumable."""
@@ -124,9 +112,8 @@ class Export:
     """Depth renderer; auto: raster (vinetwin's compiled rasteriser, no OpenGL needed), else open3d
     saying why (docs/render.md)."""
     workers: int = 0
-    """Processes; 0 chooses (1 for open3d, one per core for raster, mujoco, pyrender; Ray: its
-    CPUs)."""
-    cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
+    """Processes; 0 chooses (1 for open3d, else one per core; Ray: its CPUs)."""
+    cluster: Annotated[ClusterConfig, Nested] = field(default_factory=ClusterConfig)
     seed: int = 0
     """Base seed of the D405 noise; each pose derives its own."""
     force: bool = False
@@ -183,7 +170,7 @@ class Campaign:
     """Report folder (default: TWIN/campaign/PRESET)."""
     json: Path | None = None
     """Also write the figures (campaign.json) here."""
-    cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
+    cluster: Annotated[ClusterConfig, Nested] = field(default_factory=ClusterConfig)
     force: bool = False
     """Run every run again, even those already in OUT/runs with the same inputs."""
     overwrite: bool = False
@@ -194,7 +181,7 @@ class Campaign:
         from vinetwin.sim.report import print_tables
         from vinetwin.twin.model import Twin
 
-        refuse_json(self.json, self.overwrite)
+        refuse_existing_json(self.json, self.overwrite)
         out = self.out or (self.twin / "campaign" / self.config.preset)
         data = with_progress("simulating", lambda progress: run_campaign(
             Twin.load(self.twin), self.config, out, progress,
@@ -210,7 +197,7 @@ class Validate:
     twin: Annotated[Path, Positional]
     """Twin folder, or a folder of twin folders (a vineyard)."""
     config: Annotated[ValidateConfig, Nested] = field(default_factory=ValidateConfig)
-    cluster: Annotated[Cluster, Nested] = field(default_factory=Cluster)
+    cluster: Annotated[ClusterConfig, Nested] = field(default_factory=ClusterConfig)
     json: Path | None = None
     """Also write the summary here."""
     overwrite: bool = False
@@ -219,7 +206,7 @@ class Validate:
     def run(self) -> None:
         from vinetwin.sim.validate import validate_folder
 
-        refuse_json(self.json, self.overwrite)
+        refuse_existing_json(self.json, self.overwrite)
         with_progress("validating", lambda progress: validate_folder(
             self.twin, self.config, progress, self.cluster.executor(self.config.workers),
             json_path=self.json, echo=print))  # fmt: skip
@@ -243,15 +230,17 @@ class ServoCmd:
     """Also write the run as MCAP for Foxglove or RViz (a ROS 2 bag folder; docs/ros.md)."""
     overwrite: bool = False
     """Replace existing files at --log and --record (refused otherwise)."""
+    arrival_settings: ArrivalConfig = field(default_factory=ArrivalConfig)
+    """The arrival registration (with --arrival)."""
 
     def run(self) -> None:
-        from vinetwin.servo.runner import run_pose
-        from vinetwin.sim.rig import simulated_session
+        from vinetwin.servo.runner import RunOutputs, run_pose
+        from vinetwin.sim.session import servo_session
         from vinetwin.twin.model import Twin
 
-        summary, path = run_pose(Twin.load(self.twin), self.config, log_path=self.log,
-                                 record=self.record, simulator=simulated_session, mcap=self.mcap,
-                                 overwrite=self.overwrite)  # fmt: skip
+        cfg = replace(self.config, arrival_settings=self.arrival_settings)
+        outputs = RunOutputs(self.log, self.record, self.mcap, self.overwrite)
+        summary, path = run_pose(Twin.load(self.twin), cfg, outputs, servo_session)
         print(f"{summary.describe()}\nlog: {path}")
 
 
@@ -294,8 +283,7 @@ class CheckReference:
 
         check = run_check(self.twin, self.config, self.out, self.overwrite)
         print(check.describe())
-        if not check.valid:
-            raise SystemExit(1)
+        raise SystemExit(0 if check.valid else 1)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -373,9 +361,10 @@ class Reconstruct:
     twin: Path
     """Twin folder to create (or update with --overwrite)."""
     config: Annotated[ReconstructConfig, Nested] = field(default_factory=ReconstructConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    """With --poses odometry: the frames' clouds and the ICP schedule."""
     overwrite: bool = False
-    """Replace the mesh of an existing twin (its cut points and poses are kept), and an
-    existing --json file."""
+    """Replace an existing twin's mesh (cut points and poses kept) and an existing --json."""
     ground_truth: Path | None = None
     """A twin folder or mesh file to evaluate against."""
     json: Path | None = None
@@ -384,9 +373,10 @@ class Reconstruct:
     def run(self) -> None:
         from vinetwin.reconstruct.pipeline import reconstruct
 
-        refuse_json(self.json, self.overwrite)
+        refuse_existing_json(self.json, self.overwrite)
+        cfg = replace(self.config, odometry=self.odometry)
         with_progress("fusing frames", lambda progress: reconstruct(
-            self.capture, self.twin, self.config, overwrite=self.overwrite,
+            self.capture, self.twin, cfg, overwrite=self.overwrite,
             ground_truth=self.ground_truth, progress=progress, json_path=self.json))  # fmt: skip
 
 
@@ -416,45 +406,9 @@ class Demo:
     """Folder for the demo's outputs (the bundled sample itself is never modified)."""
 
     def run(self) -> None:
-        from vinetwin.twin.model import Twin, copy_bundled_sample
-        from vinetwin.twin.summary import print_summary
+        from vinetwin.render.export import run_demo
 
-        dst = copy_bundled_sample(self.out, replace=True)
-        print_summary(Twin.load(dst))
-        Export(twin=dst).run()
-        first = Twin.load(dst).poses[0].id
-        Preview(twin=dst, pose=first, out=self.out / f"preview_{first}.png", overwrite=True).run()
-        log.info("demo done: references and preview in %s", self.out)
-
-
-def exit_status(exc: BaseException) -> int:
-    """The exit status of a command that raised `exc`, its error named on the log: 2 for a
-    refused input or a file that cannot be read or written, 130 for Ctrl-C (also when it
-    landed inside a compiled kernel); anything else is a bug, raised with its traceback."""
-    from vinetwin.errors import raise_if_interrupt
-
-    if isinstance(exc, SystemExit):  # --help, or tyro's named error for a refused value
-        return exc.code if isinstance(exc.code, int) else 2
-    if isinstance(exc, VinetwinError):
-        log.error("%s", exc)
-        return 2
-    if isinstance(exc, OSError):  # not a traceback
-        log.error("%s%s", f"{exc.filename}: " if exc.filename else "", exc.strerror or exc)
-        return 2
-    try:
-        raise_if_interrupt(exc)
-    except KeyboardInterrupt:
-        log.error("interrupted")
-        return 130
-    raise exc
-
-
-def refuse_json(path: Path | None, overwrite: bool) -> None:
-    """--json names a new file, or an old one with --overwrite: checked before the work."""
-    if path is not None:
-        from vinetwin.files import refuse_existing
-
-        refuse_existing(path, "--json", overwrite)
+        run_demo(self.out)
 
 
 COMMANDS: dict[str, type] = {
@@ -488,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         cmd.run()
     except BaseException as exc:
-        return exit_status(exc)
+        return exit_status(exc, log)
     return 0
 
 

@@ -18,7 +18,7 @@ into a pose error. Steps (the paper's, plus a cheap image-space filter):
    pixels per voxel. A voxel made only of pixels whose normal is undefined (a 1-2 px sliver at
    a silhouette) is dropped when normals are asked for.
 
-The per-pixel and per-point loops are compiled (`vinetwin._kernels`, numba): steps 1-4 and the
+The per-pixel and per-point loops are compiled (`vinetwin._cloud_kernels` and `_outlier_kernels`, numba): steps 1-4 and the
 per-pixel normals run as one pass over the image (no per-pixel arrays), in bands of rows on
 numba's thread count of Python threads (the kernels release the GIL) when the image has enough
 in-range pixels, and step 5 finds each point's neighbours by a search of grid cells instead of
@@ -45,6 +45,9 @@ from vinetwin.errors import InputError
 
 #: ICP variants known to vinetwin (the paper's four).
 ICP_VARIANTS = ("point_to_point", "lm", "point_to_plane", "symmetric")
+#: How much finer than the perception voxel the dense reference is (the voxel divided by this;
+#: `render.reference.dense_cloud`, `ServoConfig.dense_reference`).
+DENSE_FACTOR = 4
 #: The largest `PerceptionConfig.decimation` (every 8th pixel of a 848x480 image: 106x60).
 MAX_DECIMATION = 8
 #: Outlier rules of the perception chain (`PerceptionConfig.outlier_rule`).
@@ -133,12 +136,12 @@ def _depth_voxels(
     o: Any,
     threads: int | None = None,
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Steps 1-4 and the per-pixel normals (`_kernels.depth_voxel_band`), the image cut into
+    """Steps 1-4 and the per-pixel normals (`_cloud_kernels.depth_voxel_band`), the image cut into
     `threads` (default `_bands.threads()`, numba's thread count) bands of rows with equal numbers of in-range pixels
-    (`vinetwin._bands`), the bands merged in row order (`_kernels.merge_voxel_bands`): voxel
+    (`vinetwin._bands`), the bands merged in row order (`_cloud_kernels.merge_voxel_bands`): voxel
     centroids and normal sums. The same voxels in the same order as one band, their sums equal
     to rounding."""
-    from vinetwin import _bands, _kernels
+    from vinetwin import _bands, _cloud_kernels
 
     dmin = max(cfg.min_depth, 1e-6)
     args = (
@@ -149,15 +152,15 @@ def _depth_voxels(
     H = d.shape[0]
     rows = [0, H]
     if threads > 1 and H >= 32:
-        work = _kernels.valid_rows(d, dmin, cfg.max_depth)  # in-range pixels before each row
+        work = _cloud_kernels.valid_rows(d, dmin, cfg.max_depth)  # in-range pixels before each row
         bands = max(1, min(threads, int(work[-1]) // _MIN_BAND_PIXELS))
         rows = _bands.cuts(work, bands)
-    parts = _bands.run(_kernels.depth_voxel_band, args, rows)
+    parts = _bands.run(_cloud_kernels.depth_voxel_band, args, rows)
     found = np.array([len(p[3]) for p in parts], np.int64)
     joined = (
         parts[0] if len(parts) == 1 else [np.concatenate([p[k] for p in parts]) for k in range(4)]
     )
-    return _kernels.merge_voxel_bands(joined[0], joined[1], joined[2], joined[3], found)
+    return _cloud_kernels.merge_voxel_bands(joined[0], joined[1], joined[2], joined[3], found)
 
 
 def voxel_downsample(
@@ -175,14 +178,16 @@ def voxel_downsample(
     """
     if voxel <= 0 or len(points) == 0:
         return points, normals
-    from vinetwin import _kernels
+    from vinetwin import _cloud_kernels
 
     o = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
     pts = np.ascontiguousarray(points, dtype=np.float64)
     nrm = (
         np.ascontiguousarray(normals, dtype=np.float64) if normals is not None else np.zeros((0, 3))
     )
-    out, nout = _kernels.voxel_grid(pts, nrm, float(voxel), o[0], o[1], o[2], normals is not None)
+    out, nout = _cloud_kernels.voxel_grid(
+        pts, nrm, float(voxel), o[0], o[1], o[2], normals is not None
+    )
     if normals is None:
         return out, None
     length = np.linalg.norm(nout, axis=1, keepdims=True)
@@ -208,10 +213,10 @@ def statistical_outliers(
 
     pts = np.ascontiguousarray(points, dtype=np.float64)
     if spacing is not None and spacing > 0:
-        from vinetwin import _bands, _kernels
+        from vinetwin import _bands, _outlier_kernels
 
         cell = spacing * max(1.0, 0.75 * math.sqrt(neighbors))
-        mean_d = _kernels.knn_mean_distance(pts, int(neighbors), cell, 3, _bands.threads())
+        mean_d = _outlier_kernels.knn_mean_distance(pts, int(neighbors), cell, 3, _bands.threads())
         todo = np.flatnonzero(np.isnan(mean_d))
         if 0 < len(todo) <= 32:  # a few isolated points: against every point (no tree to build)
             for i in todo:
@@ -237,10 +242,10 @@ def radius_outliers(
     n = len(points)
     if neighbors <= 0 or n == 0:
         return np.ones(n, dtype=bool)
-    from vinetwin import _kernels
+    from vinetwin import _outlier_kernels
 
     pts = np.ascontiguousarray(points, dtype=np.float64)
-    return _kernels.radius_counts(pts, float(radius), int(neighbors)) >= neighbors
+    return _outlier_kernels.radius_counts(pts, float(radius), int(neighbors)) >= neighbors
 
 
 def outlier_mask(
@@ -276,7 +281,7 @@ def perceive(
     live cloud kept the canes' rims and the reference did not: a 0.3-0.4 mm bias of
     point-to-point at the goal, measured on the sample).
     """
-    from vinetwin import _kernels
+    from vinetwin import _cloud_kernels
 
     cfg = config or PerceptionConfig()
     d = np.ascontiguousarray(camera.check_depth(depth), dtype=np.float32)
@@ -291,7 +296,7 @@ def perceive(
         # deprojection, flying-pixel filter, normals and the voxel grid in one compiled pass
         pts, nrm = _depth_voxels(d, camera, cfg, step, o)
     else:
-        pts, nrm = _kernels.organised_points(
+        pts, nrm = _cloud_kernels.organised_points(
             d, camera.fx, camera.fy, camera.cx, camera.cy, max(cfg.min_depth, 1e-6),
             cfg.max_depth, cfg.edge_threshold, step, True,
         )  # fmt: skip
@@ -302,7 +307,7 @@ def perceive(
         keep = np.ones(len(pts), dtype=bool)
     # the kept points with a normal, their normals made unit and turned to face the camera (at
     # the origin); one compiled loop: with numpy these five steps took 1.5 ms for 12k points
-    pts, nrm = _kernels.unit_normals(pts, nrm, keep)
+    pts, nrm = _cloud_kernels.unit_normals(pts, nrm, keep)
     if not normals:
         return Cloud(pts, None)
     return Cloud(pts, nrm)

@@ -4,6 +4,8 @@ its message, which says what was wrong and what would be valid."""
 
 from __future__ import annotations
 
+import logging
+
 
 class VinetwinError(Exception):
     """Root of every error raised on purpose by vinetwin."""
@@ -81,3 +83,23 @@ def raise_if_interrupt(exc: BaseException) -> None:
             raise KeyboardInterrupt from exc
         seen.add(id(e))
         e = e.__cause__ or e.__context__
+
+
+def exit_status(exc: BaseException, log: logging.Logger) -> int:
+    """The exit status of a command that raised `exc`, its error named on `log`: 2 for a
+    refused input or a file that cannot be read or written, 130 for Ctrl-C (also when it
+    landed inside a compiled kernel); anything else is a bug, raised with its traceback."""
+    if isinstance(exc, SystemExit):  # --help, or tyro's named error for a refused value
+        return exc.code if isinstance(exc.code, int) else 2
+    if isinstance(exc, VinetwinError):
+        log.error("%s", exc)
+        return 2
+    if isinstance(exc, OSError):  # not a traceback
+        log.error("%s%s", f"{exc.filename}: " if exc.filename else "", exc.strerror or exc)
+        return 2
+    try:
+        raise_if_interrupt(exc)
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        return 130
+    raise exc

@@ -89,6 +89,20 @@ class ExecutorConfig(JsonFields):
         return cls(kind="ray", workers=workers) if ray else None
 
 
+@dataclass(frozen=True, kw_only=True)
+class ClusterConfig:
+    """Where a command's batch jobs run (the command line's `--ray`, `--ray-address`)."""
+
+    ray: bool = False
+    """Run the jobs on a local Ray started on this machine (pip install 'vinetwin[ray]')."""
+    ray_address: str = ""
+    """Run the jobs on this Ray cluster (HOST:6379 or auto; same twin paths on every node)."""
+
+    def executor(self, workers: int) -> ExecutorConfig | None:
+        """The executor asked for, with `workers` (None: the command's default local pool)."""
+        return ExecutorConfig.from_flags(self.ray, self.ray_address, workers)
+
+
 @dataclass
 class Outcome:
     """One job's end: `value` (what the function returned) or `error`."""

@@ -151,6 +151,12 @@ def refuse_existing(path: str | Path, flag: str, overwrite: bool = False) -> Pat
     return path
 
 
+def refuse_existing_json(path: Path | None, overwrite: bool) -> None:
+    """A command's `--json PATH` (None: not asked for): `refuse_existing`, before the work."""
+    if path is not None:
+        refuse_existing(path, "--json", overwrite)
+
+
 def refuse_existing_outputs(
     folder: Path, names: tuple[str, ...], flag: str, overwrite: bool
 ) -> None:

@@ -35,12 +35,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from vinetwin.camera import CameraModel
+from vinetwin.camera import D405_MIN_DEPTH, CameraModel
 from vinetwin.errors import InputError, VinetwinError
 from vinetwin.frames import Array
 
-#: D405 depth modes (width, height) and frame rates the live source accepts.
-D405_RESOLUTIONS = ((848, 480), (1280, 720), (640, 480), (640, 360), (480, 270), (424, 240))
+#: D405 depth modes (width, height) the live source accepts (the camera model's list) and its
+#: frame rates.
+D405_MODES = tuple(D405_MIN_DEPTH)
 D405_RATES = (5, 15, 30, 60, 90)
 
 
@@ -68,17 +69,17 @@ class CameraFrame:
     @property
     def depth(self) -> npt.NDArray[np.float32]:
         """z-depth in metres (0 = no data)."""
-        from vinetwin import _kernels
+        from vinetwin import _cloud_kernels
 
         c = np.ascontiguousarray(self.counts)
         out = np.empty(c.shape, np.float32)
-        _kernels.counts_to_metres(c.reshape(-1), np.float32(self.depth_unit), out.reshape(-1))
+        _cloud_kernels.counts_to_metres(c.reshape(-1), np.float32(self.depth_unit), out.reshape(-1))
         return out
 
 
 def quantize_depth(depth: Any, depth_unit: float) -> npt.NDArray[np.uint16]:
     """Metres to 16-bit counts as the camera streams them (0 for no data and out of range)."""
-    from vinetwin import _kernels
+    from vinetwin import _cloud_kernels
 
     d = np.asarray(depth)
     if d.dtype not in (np.float32, np.float64):
@@ -86,7 +87,7 @@ def quantize_depth(depth: Any, depth_unit: float) -> npt.NDArray[np.uint16]:
     if not d.flags.c_contiguous:
         d = d.copy()
     out = np.empty(d.shape, np.uint16)
-    _kernels.quantize_depth(d.reshape(-1), float(depth_unit), out.reshape(-1))
+    _cloud_kernels.quantize_depth(d.reshape(-1), float(depth_unit), out.reshape(-1))
     return out
 
 
@@ -490,9 +491,9 @@ def open_source(
     by the simulation (`servo.sim`)."""
     kind, _, arg = spec.partition(":")
     if kind == "realsense":
-        if (width, height) not in D405_RESOLUTIONS or fps not in D405_RATES:
+        if (width, height) not in D405_MODES or fps not in D405_RATES:
             raise InputError(
-                f"the D405 streams depth at {', '.join(f'{w}x{h}' for w, h in D405_RESOLUTIONS)}"
+                f"the D405 streams depth at {', '.join(f'{w}x{h}' for w, h in D405_MODES)}"
                 f" and {', '.join(map(str, D405_RATES))} fps; got {width}x{height} {fps} fps"
             )
         return RealSenseSource(

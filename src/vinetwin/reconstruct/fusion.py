@@ -25,30 +25,7 @@ from vinetwin import _lazy
 from vinetwin.capture.folder import Capture, CaptureError
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, invert, transform_points
-
-
-@dataclass(frozen=True, kw_only=True)
-class FusionConfig:
-    voxel: float = 0.0015
-    """TSDF voxel size (m)."""
-    truncation: float = 0.006
-    """SDF truncation distance (m); about 4 voxels."""
-    depth_min: float = 0.07
-    """Nearest depth used (m): the D405's minimum."""
-    depth_max: float = 0.5
-    """Farthest depth used (m): beyond it the D405's noise blurs canes."""
-    min_component: float = 0.02
-    """Drop connected components with fewer triangles than this fraction of the largest."""
-    smooth_iterations: int = 0
-    """Taubin smoothing iterations (0: none)."""
-    target_triangles: int = 0
-    """Decimate to at most this many triangles (0: keep)."""
-    block_count: int = 200_000
-    """Capacity of the voxel-block hash map (blocks of 8^3 voxels)."""
-    min_pixels: int = 100
-    """A frame with fewer depth pixels than this within [depth_min, depth_max] is skipped and
-    named: it adds nothing a mesh could keep, and Open3D aborts the whole integration on some
-    (four scattered pixels, in a sweep past a large vine: "No block is touched")."""
+from vinetwin.reconstruct.config import FUSED_DEPTH_MAX, TRUNCATION_VOXELS, FusionConfig
 
 
 @dataclass
@@ -84,14 +61,15 @@ def fuse(
     )
     K = o3c.Tensor(cam.K, o3c.float64)
     scale = 1.0 / capture.depth_unit
-    trunc_voxels = cfg.truncation / cfg.voxel
+    trunc_voxels = cfg.truncation / cfg.voxel if cfg.truncation > 0 else float(TRUNCATION_VOXELS)
+    depth_min = max(cfg.depth_min, cam.min_depth)  # what the camera calls invalid stays out
     used, skipped = [], {}
     for k, f in enumerate(capture.frames):
         if f.id not in poses:
             skipped[f.id] = "no pose"
             continue
         d16 = f.depth_counts().copy()
-        d16[d16 < int(cfg.depth_min * scale)] = 0
+        d16[d16 < int(np.ceil(depth_min * scale))] = 0
         d16[d16 > int(cfg.depth_max * scale)] = 0  # Open3D aborts on a frame it cannot use
         n_pixels = int(np.count_nonzero(d16))
         if n_pixels == 0:
@@ -185,19 +163,19 @@ def observed(
     tol: float = 0.003,
 ) -> np.ndarray:
     """Mask of ground-truth points the capture measured: seen in at least `min_views` frames,
-    inside the image, within the D405's range, not behind other ground-truth surface (ray cast of
+    inside the image, within the range fused (the camera's minimum to `FUSED_DEPTH_MAX`), not behind other ground-truth surface (ray cast of
     the ground truth at that pixel), at an incidence of at most `max_incidence_deg` (beyond it,
     on a cane's silhouette, the stereo depth is dropped or smeared: no capture measures it)."""
-    from vinetwin.render.backends import get_backend
+    from vinetwin.render.backends import raycaster
 
     cam = capture.camera
-    backend = get_backend("open3d", V, F, cam, coarse_step=1)
+    backend = raycaster(V, F, cam, coarse_step=1)
     views = np.zeros(len(points), int)
     cos_min = float(np.cos(np.radians(max_incidence_deg)))
     for T in poses.values():
         p = transform_points(invert(T), points)
         z = p[:, 2]
-        ok = (z > 0.07) & (z < 0.5)
+        ok = (z >= cam.min_depth) & (z < FUSED_DEPTH_MAX)
         u = np.round(cam.fx * p[:, 0] / np.where(ok, z, 1) + cam.cx).astype(int)
         v = np.round(cam.fy * p[:, 1] / np.where(ok, z, 1) + cam.cy).astype(int)
         ok &= (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)

@@ -36,10 +36,11 @@ import numpy as np
 
 from vinetwin import _lazy
 from vinetwin.capture.folder import Capture, CaptureError
-from vinetwin.cloud import Cloud, PerceptionConfig, perceive
+from vinetwin.cloud import Cloud, perceive
 from vinetwin.frames import Array, invert, pose_error, se3_exp, se3_log, transform_points
+from vinetwin.reconstruct.config import OdometryConfig
 from vinetwin.registration.features import fpfh, ransac_proposal
-from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
+from vinetwin.registration.icp import ICP, ICPResult
 from vinetwin.registration.search import WideSearch
 
 #: A pair's alignment (tracked or searched) is kept when it converged and pairs at least this
@@ -123,15 +124,12 @@ class OdometryResult:
         return [f for r in self.runs if r[:1] == first or r[0] in self.joined for f in r]
 
 
-def odometry_poses(capture: Capture, perception: PerceptionConfig | None = None) -> OdometryResult:
+def odometry_poses(capture: Capture, config: OdometryConfig | None = None) -> OdometryResult:
+    """Each frame's pose in the first's (`OdometryResult`), by frame-to-frame ICP."""
     t0 = time.perf_counter()
-    per = perception or PerceptionConfig(max_depth=0.5, voxel_size=0.003)
-    cfg = ICPConfig(
-        variant="point_to_plane",
-        schedule=((0.0, 0.05), (0.0, 0.015)),
-        max_correspondence_distance=0.005,
-        coarse_tolerance=0.0,  # measured without the early hand-on (docs/reconstruct.md)
-    )
+    settings = config or OdometryConfig()
+    per = settings.perception()
+    cfg = settings.icp()
     cam = capture.camera
     clouds = [perceive(f.depth(capture.depth_unit), cam, per) for f in capture.frames]
     poses = {capture.frames[0].id: np.eye(4)}

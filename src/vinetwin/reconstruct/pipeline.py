@@ -10,30 +10,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from vinetwin.errors import TwinError
 from vinetwin.files import atomic_write_json
+from vinetwin.reconstruct.config import ReconstructConfig
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True, kw_only=True)
-class ReconstructConfig:
-    """How frames become a mesh."""
-
-    poses: Literal["kinematics", "colmap", "odometry"] = "kinematics"
-    """Pose source: the capture's robot kinematics, pycolmap structure-from-motion on the colour
-    frames (metric scale from the depth), or depth odometry (frame-to-frame ICP; needs a
-    video-like capture)."""
-    voxel: float = 0.0015
-    """TSDF voxel size (m)."""
-    depth_max: float = 0.5
-    """Farthest depth fused (m)."""
-    target_triangles: int = 0
-    """Decimate the mesh to at most this many triangles (0: keep)."""
 
 
 def reconstruct(
@@ -71,7 +55,7 @@ def reconstruct(
         from vinetwin.reconstruct.odometry import MIN_RUN_FRAMES, odometry_poses
         from vinetwin.reconstruct.sfm import align_to
 
-        odo = odometry_poses(cap)
+        odo = odometry_poses(cap, cfg.odometry)
         run = odo.longest_run
         if len(run) < MIN_RUN_FRAMES:
             raise CaptureError(
@@ -136,7 +120,6 @@ def reconstruct(
         poses = kinematic_poses(cap)
     fusion = FusionConfig(
         voxel=cfg.voxel,
-        truncation=4 * cfg.voxel,
         depth_max=cfg.depth_max,
         target_triangles=cfg.target_triangles,
     )

@@ -18,7 +18,7 @@ import numpy as np
 
 from vinetwin.capture.folder import write_capture
 from vinetwin.frames import Array, look_at, make_pose, so3_exp, transform_points
-from vinetwin.render.backends import get_backend
+from vinetwin.render.backends import raycaster
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
 from vinetwin.twin.model import Twin
 
@@ -119,7 +119,7 @@ def synthetic_capture(
     poses: for vines too large to sweep whole at the D405's range)."""
     mesh = twin.load_mesh()
     cam = twin.camera
-    backend = get_backend("open3d", mesh.vertices, mesh.faces, cam)
+    backend = raycaster(mesh.vertices, mesh.faces, cam)
     rng = np.random.default_rng(seed)
     rows = []
     makers = {"grid": sweep_poses, "path": path_poses, "poses": around_poses}

@@ -13,7 +13,7 @@
 The reference never changes during a servo: `ICP(reference_cloud, config)` builds its
 k-d trees (one per voxel size of its levels; their searches memoised within a registration,
 the same exact answers) and, for projective association, the reference points binned by their
-pixel in the reference camera's image, once; `align(current_cloud,
+pixel in the reference camera's image, once (`_search_kernels`); `align(current_cloud,
 T_init)` runs per frame, each level in one compiled call (`vinetwin.registration._kernels`). A
 registration runs through levels, coarse to fine: each level is (voxel size, maximum
 correspondence distance). The default (`SCHEDULES`) shrinks the distance: 3 cm (on 4 mm copies
@@ -43,7 +43,8 @@ from vinetwin.cloud import ICP_VARIANTS, Cloud, voxel_downsample
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, pose_error
 from vinetwin.registration import _kernels as K
-from vinetwin.registration._kernels import NNTree
+from vinetwin.registration import _search_kernels as S
+from vinetwin.registration._search_kernels import NNTree
 
 NDF = npt.NDArray[np.float64]
 
@@ -185,12 +186,12 @@ class ICPConfig:
     closest reference point (k-d tree), or
     "projective", the closest among the reference points that project within
     `projective_window` cells of the current point's pixel in the reference camera's image
-    (`_kernels.ProjectiveIndex`; a cell is the reference's point spacing). Projective
+    (`_search_kernels.ProjectiveIndex`; a cell is the reference's point spacing). Projective
     association needs the reference's camera given to ICP (without it: the tree) and applies to
     the levels whose reach is at most `projective_reach`; wider levels use the tree (their
     partners lie far sideways: projective association there lost 1-3 of 8-10 warm starts that
     the tree brought in, on three vines). Against the tree, whose searches are memoised
-    within a registration (`_kernels`), point-to-plane and symmetric took 0.66-1.64x its time
+    within a registration (`_search_kernels`), point-to-plane and symmetric took 0.66-1.64x its time
     on three vines' 2 and 4 mm views, at an equal or smaller median error at 2 mm (dense vine,
     point-to-plane from 2 cm: 0.10 against 0.15 mm); the fitness, overlap and coverage of a
     result are always counted with the tree (exact)."""
@@ -329,7 +330,7 @@ class _Level:
     """Reference normals in the tree's point order ((0, 3) when the reference has none)."""
     use: npt.NDArray[np.bool_]
     """False for reference points at the edge of the reference view (tree order)."""
-    proj: tuple[np.ndarray, ...] = K.NO_PROJECTIVE
+    proj: tuple[np.ndarray, ...] = S.NO_PROJECTIVE
     """The level's `ProjectiveIndex` arrays when it pairs by projection."""
     lm_radius: float = 0.0
     """LM "surface": the reference points' disc radius at this level (m); 0: LM on points."""
@@ -381,7 +382,7 @@ def _projective_index(
     points: NDF, camera: CameraModel, spacing: float, cfg: ICPConfig
 ) -> tuple[np.ndarray, ...]:
     """A level's `ProjectiveIndex`, its cells the level's point spacing (`_spacing`)."""
-    idx = K.ProjectiveIndex(
+    idx = S.ProjectiveIndex(
         points, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
         spacing, cfg.projective_window,
     )  # fmt: skip
@@ -469,7 +470,7 @@ class ICP:
                 use = ~view_edge_mask(
                     tree.points, camera, min(dmax, self.config.edge_reach_m()), max_depth
                 )
-            proj = K.NO_PROJECTIVE
+            proj = S.NO_PROJECTIVE
             projective = (
                 camera is not None
                 and self.config.association_in_use == "projective"
@@ -518,7 +519,7 @@ class ICP:
                 tol_r = max(tol_r, coarse * lv.dmax / 0.1)
             t = lv.tree
             if lv.memo_key not in memos:
-                memos[lv.memo_key] = K.new_memo(len(src))
+                memos[lv.memo_key] = S.new_memo(len(src))
             memo = memos[lv.memo_key]
             try:
                 T, status, it, pairs, _ = K.register_level(
@@ -536,7 +537,7 @@ class ICP:
         cycle_note = ""
         if status == K.ITERATION_LIMIT and cfg.cycle_translation > 0 and cfg.cycle_rotation > 0:
             cycle_note = self._limit_cycle(
-                src_cache[lv.voxel], lv, T, code, memos.get(lv.memo_key, K.NO_MEMO)
+                src_cache[lv.voxel], lv, T, code, memos.get(lv.memo_key, S.NO_MEMO)
             )
             if cycle_note:
                 status = K.CONVERGED
@@ -544,9 +545,9 @@ class ICP:
         t = lv.tree
         # the final level's memo serves when its copy is the whole cloud (nothing cropped, the
         # clouds as given): its last search was one small update ago, so few points search again
-        same = current is full and lv.voxel <= 0 and lv.proj is K.NO_PROJECTIVE
-        memo = memos.get(lv.memo_key, K.NO_MEMO) if same else K.NO_MEMO
-        q, idx, d2 = K.associate(src, T, t.arrays, lv.dmax, _threads(), memo)
+        same = current is full and lv.voxel <= 0 and lv.proj is S.NO_PROJECTIVE
+        memo = memos.get(lv.memo_key, S.NO_MEMO) if same else S.NO_MEMO
+        q, idx, d2 = S.associate(src, T, t.arrays, lv.dmax, _threads(), memo)
         ok = idx >= 0
         n_ok = int(ok.sum())
         result = ICPResult(
@@ -623,7 +624,7 @@ class ICP:
         if self._coverage_tree is None:
             return _share_hit(idx, n_ref)
         c = self._coverage_tree
-        _, cidx, _ = K.associate(src, T, c.arrays, dmax, _threads(), K.NO_MEMO)
+        _, cidx, _ = S.associate(src, T, c.arrays, dmax, _threads(), S.NO_MEMO)
         return _share_hit(cidx[cidx >= 0], len(c.points))
 
     def _limit_cycle(self, src: tuple[NDF, NDF], lv: Any, T: NDF, code: int, memo: Any) -> str:

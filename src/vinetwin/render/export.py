@@ -43,15 +43,16 @@ from vinetwin.executor import (
     workers_used,
 )
 from vinetwin.files import atomic_write_bytes, file_sha256, sync_to_disk
-from vinetwin.jobstore import JobStore
 from vinetwin.mesh import load_mesh_arrays
 from vinetwin.render.backends import DepthBackend, get_backend, resolve_backend
 from vinetwin.render.reference import (
     REFERENCE_FORMAT,
+    check_reference_files,
     digest_inputs,
     pose_digest,
     pose_seed,
     reference_files,
+    references_store,
     render_reference,
 )
 from vinetwin.render.sensor import SensorConfig
@@ -140,12 +141,14 @@ def _run_job(job: _Job) -> PoseResult:
             "files_sha256": {ext: hashlib.sha256(data).hexdigest() for ext, data in files.items()},
             "points": len(ref.cloud),
             "has_normals": ref.cloud.normals is not None,
-            "valid_depth_pixels": int(np.count_nonzero(ref.depth > 0)),
+            "valid_depth_pixels": int(np.count_nonzero(ref.depth > 0))
+            if ref.depth is not None
+            else 0,
             "warning": warning,
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         }
         # the sidecar is written last: a reference is current only once it exists
-        _store(out).put(job.pose_id, meta["inputs_sha256"], meta)
+        references_store(out).put(job.pose_id, meta["inputs_sha256"], meta)
         return PoseResult(
             job.pose_id, "rendered", len(ref.cloud), time.perf_counter() - t0, warning=warning,
             twin=job.twin,
@@ -162,44 +165,9 @@ def _run_job(job: _Job) -> PoseResult:
 
 
 # ----------------------------------------------------------------------------- driver
-def _store(folder: Path) -> JobStore:
-    """The references folder: a sidecar `POSE.json` per reference, carrying the digest of its
-    inputs (`inputs_sha256`); its clouds `POSE.ply` and `.pcd` are its companions.
-
-    Its files are written without an fsync each (three per reference were a fifth of a
-    reference's time): the sidecar records the clouds' hashes, which are checked before a
-    reference is reused or servoed to, so a file a power loss left empty or old is rendered
-    again, never used; `sync_to_disk` flushes them all at the end of the export."""
-    return JobStore(
-        folder,
-        REFERENCE_FORMAT,
-        format_key="reference_format",
-        digest_key="inputs_sha256",
-        sync=False,
-    )
-
-
-def check_reference_files(folder: Path, pose_id: str) -> str:
-    """Why the reference's cloud files are not the ones its sidecar recorded ("" when they
-    are): missing, truncated or changed since export."""
-    sidecar = _store(folder).read(pose_id)
-    if sidecar is None:
-        return f"{folder / pose_id}.json: no readable sidecar"
-    want = sidecar.get("files_sha256")
-    if not isinstance(want, dict):
-        return f"{folder / pose_id}.json records no file hashes (exported by an older vinetwin)"
-    for ext in ("ply", "pcd"):
-        path = folder / f"{pose_id}.{ext}"
-        if not path.exists():
-            return f"{path} is missing"
-        if file_sha256(path) != want.get(ext):
-            return f"{path} does not match the hash its sidecar recorded (truncated or changed)"
-    return ""
-
-
 def _is_current(out: Path, pose_id: str, digest: str) -> bool:
     companions = [out / f"{pose_id}.ply", out / f"{pose_id}.pcd"]
-    if _store(out).current(pose_id, digest, companions) is None:
+    if references_store(out).current(pose_id, digest, companions) is None:
         return False
     problem = check_reference_files(out, pose_id)
     if problem:
@@ -230,7 +198,7 @@ def plan_export(
     load_mesh_arrays(twin.mesh_path)  # refuse a bad mesh once, before any worker starts
     mesh_sha = file_sha256(twin.mesh_path)
     out = twin.references_dir
-    _store(out).open()  # removes what writers killed in an earlier run left
+    references_store(out).open()  # removes what writers killed in an earlier run left
     skipped: list[PoseResult] = []
     jobs: list[_Job] = []
     name = str(twin.root)
@@ -374,7 +342,7 @@ def _run_planned(
         if executor.kind == "local" and report.workers <= 1:
             clear_worker_cache()  # the renderers built in this process
         for out in sorted({j.out_dir for j in jobs}):  # a broken pool terminates writers mid-file
-            _store(Path(out)).clean()
+            references_store(Path(out)).clean()
         if jobs:
             sync_to_disk()  # the references were written without an fsync each
     return report
@@ -462,3 +430,25 @@ def print_report(report: ExportReport, where: Path) -> None:
         f"({report.executor}, {report.workers} worker{'s' * (report.workers != 1)}) -> {where}",
         markup=False,
     )
+
+
+def run_demo(out: Path) -> Path:
+    """`vinetwin demo`, the main job headless: the bundled sample copied to `out` (the sample
+    itself is never modified), its summary, its references exported and a preview of its first
+    pose; returns the copy's folder."""
+    from vinetwin.progress import with_progress
+    from vinetwin.render.preview import preview_pose
+    from vinetwin.twin.model import copy_bundled_sample
+    from vinetwin.twin.summary import print_summary
+
+    dst = copy_bundled_sample(out, replace=True)
+    print_summary(Twin.load(dst))
+    report, where = with_progress(
+        "exporting references", lambda progress: export_twins(dst, progress=progress)
+    )
+    print_report(report, where)
+    check_export_ok(report)
+    first = Twin.load(dst).poses[0].id
+    preview_pose(Twin.load(dst), first, out / f"preview_{first}.png", overwrite=True)
+    log.info("demo done: references and preview in %s", out)
+    return dst

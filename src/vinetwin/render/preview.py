@@ -31,8 +31,7 @@ def preview_pose(
     preview PNG to `out`; returns the reference. `backend` None or "auto": the one
     `render.backends.resolve_backend` picks for a single view."""
     from vinetwin.render.backends import get_backend, resolve_backend
-    from vinetwin.render.reference import pose_seed, render_reference
-    from vinetwin.render.sensor import SensorConfig
+    from vinetwin.render.reference import reference_for
 
     out = Path(out)
     if out.suffix.lower() != ".png":
@@ -46,9 +45,7 @@ def preview_pose(
     backend = resolve_backend(backend)
     renderer = get_backend(backend, mesh.vertices, mesh.faces, twin.camera)
     try:
-        ref = render_reference(
-            renderer, pose.T_vine_camera, twin.perception, SensorConfig(), pose_seed(seed, pose.id)
-        )
+        ref = reference_for(twin, pose.id, use_exported=False, renderer=renderer, seed=seed)
     finally:
         renderer.close()
     save_preview(ref, out, f"{twin.name} / {pose.id} ({backend})")
@@ -69,6 +66,8 @@ def save_preview(ref: Reference, path: str | Path, title: str = "") -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if ref.depth is None:
+        raise InputError("a preview needs the rendered depth, not an exported cloud")
     d = np.where(ref.depth > 0, ref.depth, np.nan)
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), gridspec_kw={"width_ratios": [1.8, 1, 1]})
     im = axes[0].imshow(d, cmap="turbo")

@@ -1,22 +1,34 @@
-"""One reference cloud: render depth at a pruning pose, apply the D405 model, run the shared
-perception chain, and read/write the result (PLY, PCD for PCL users, JSON sidecar)."""
+"""A pose's reference cloud, owned here: render depth at a pruning pose, apply the D405 model,
+run the shared perception chain (`render_reference`), read an exported one with its hash check
+(`check_reference_files`, `read_reference_cloud`), and write one (PLY, PCD for PCL users, JSON
+sidecar). `reference_for` is the one entry for "the reference of this pose of this twin": the
+servo, the simulator, the web app, `preview` and `check-reference` all call it."""
 
 from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
 from vinetwin.camera import CameraModel
-from vinetwin.cloud import Cloud, PerceptionConfig, perceive
-from vinetwin.errors import VinetwinError
+from vinetwin.cloud import DENSE_FACTOR, Cloud, PerceptionConfig, perceive
+from vinetwin.errors import InputError, VinetwinError
+from vinetwin.files import file_sha256
+from vinetwin.frames import invert, transform_points
+from vinetwin.jobstore import JobStore
 from vinetwin.render.backends import DepthBackend
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
+
+if TYPE_CHECKING:
+    from vinetwin.twin.model import Twin
+
+log = logging.getLogger(__name__)
 
 #: Bump when the rendering or perception algorithm changes what a reference holds: every
 #: exported reference is then re-rendered on the next export.
@@ -29,13 +41,20 @@ def pose_seed(base_seed: int, pose_id: str) -> int:
     return int.from_bytes(h[:4], "little")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Reference:
-    """A rendered reference: the cloud (reference camera frame) and the depth it came from."""
+    """A pose's reference: the cloud (reference camera frame), the depth it came from (None when
+    read from exported files), its noise seed, and what the servo may also want: the dense cloud
+    (`dense_cloud`) and the cut point in the reference camera frame (the view-keeping law's
+    target)."""
 
     cloud: Cloud
-    depth: npt.NDArray[np.float32]
+    depth: npt.NDArray[np.float32] | None
     seed: int
+    dense: Cloud | None = None
+    cut: npt.NDArray[np.float64] | None = None
+    exported: bool = False
+    """Read from the twin's exported files (`vinetwin export`), not rendered now."""
 
 
 def render_reference(
@@ -44,13 +63,17 @@ def render_reference(
     perception: PerceptionConfig,
     sensor: SensorConfig,
     seed: int,
+    dense: bool = False,
 ) -> Reference:
-    """Depth at the pose -> D405 model -> perception chain. An empty view gives an empty cloud;
-    the caller reports it (export in its report and log, preview in its log)."""
+    """Depth at the pose -> D405 model -> perception chain; with `dense`, the same depth also
+    through the chain at a finer voxel (`dense_cloud`): one render either way. An empty view
+    gives an empty cloud; the caller reports it (export in its report and log, preview in its
+    log, the servo refuses it)."""
     clean = backend.render(T_vine_camera)
     depth = apply_d405_model(clean, backend.camera, np.random.default_rng(seed), sensor)
     cloud = perceive(depth, backend.camera, perception, normals=True)
-    return Reference(cloud, depth, seed)
+    fine = dense_cloud(depth, backend.camera, perception, DENSE_FACTOR) if dense else None
+    return Reference(cloud, depth, seed, dense=fine)
 
 
 def dense_cloud(
@@ -59,13 +82,96 @@ def dense_cloud(
     """The same depth image through the perception chain at `1/factor` of its voxel: the dense
     reference point-to-point and LM pair their final ICP level against (`ServoConfig.
     dense_reference`), so their answer is not tied to the lattice of the voxel grid."""
-    from dataclasses import replace
+    fine = replace(perception, voxel_size=perception.voxel_size / max(factor, 1))
+    return perceive(depth, camera, fine, normals=True)
 
-    dense = replace(perception, voxel_size=perception.voxel_size / max(factor, 1))
-    return perceive(depth, camera, dense, normals=True)
+
+def reference_for(
+    twin: Twin,
+    pose_id: str,
+    *,
+    dense: bool = False,
+    use_exported: bool = True,
+    renderer: DepthBackend | None = None,
+    seed: int = 0,
+) -> Reference:
+    """The reference of one pose of a twin, with its cut point in the reference camera frame.
+
+    `use_exported`: the twin's exported `references/POSE.ply` when there is one (refused, naming
+    why, when its files do not match the hashes its sidecar recorded); else the pose rendered
+    now with the twin's settings and the export's noise seed (`pose_seed(seed, pose_id)`), as
+    `vinetwin export` would. `dense`: also the dense cloud, from the same render (an exported
+    reference is rendered once for it). `renderer`: render with it (kept open; for example a
+    reconstructed twin's mesh, or a session's own renderer); default: the export's backend for
+    one view, opened and closed here."""
+    pose = twin.pose(pose_id)
+    T = np.asarray(pose.T_vine_camera, float)
+    cut = transform_points(invert(T), twin.cut_point(pose.cut_point).point[None])[0]
+    path = twin.references_dir / f"{pose.id}.ply"
+    cloud = None
+    if use_exported and path.exists():
+        problem = check_reference_files(twin.references_dir, pose.id)
+        if problem:
+            raise InputError(f"refusing reference {path}: {problem}; run `vinetwin export` again")
+        cloud = read_reference_cloud(path)
+        if not dense:
+            return Reference(cloud, None, pose_seed(seed, pose.id), cut=cut, exported=True)
+    elif use_exported:
+        log.warning("%s: not exported; rendering the reference with the twin's settings", path)
+    own = renderer is None
+    if renderer is None:
+        from vinetwin.render.backends import get_backend, resolve_backend
+
+        mesh = twin.load_mesh()
+        renderer = get_backend(resolve_backend(None), mesh.vertices, mesh.faces, twin.camera)
+    try:
+        rendered = render_reference(
+            renderer, T, twin.perception, SensorConfig(), pose_seed(seed, pose.id), dense
+        )
+    finally:
+        if own:
+            renderer.close()
+    if cloud is not None:  # the exported cloud, with the dense one rendered for it
+        return replace(rendered, cloud=cloud, cut=cut, exported=True)
+    return replace(rendered, cut=cut)
 
 
 # ----------------------------------------------------------------------------- files
+def references_store(folder: Path) -> JobStore:
+    """The references folder: a sidecar `POSE.json` per reference, carrying the digest of its
+    inputs (`inputs_sha256`); its clouds `POSE.ply` and `.pcd` are its companions.
+
+    Its files are written without an fsync each (three per reference were a fifth of a
+    reference's time): the sidecar records the clouds' hashes, which are checked before a
+    reference is reused or servoed to (`check_reference_files`), so a file a power loss left
+    empty or old is rendered again, never used; the export flushes them all at its end."""
+    return JobStore(
+        folder,
+        REFERENCE_FORMAT,
+        format_key="reference_format",
+        digest_key="inputs_sha256",
+        sync=False,
+    )
+
+
+def check_reference_files(folder: Path, pose_id: str) -> str:
+    """Why the reference's cloud files are not the ones its sidecar recorded ("" when they
+    are): missing, truncated or changed since export."""
+    sidecar = references_store(folder).read(pose_id)
+    if sidecar is None:
+        return f"{folder / pose_id}.json: no readable sidecar"
+    want = sidecar.get("files_sha256")
+    if not isinstance(want, dict):
+        return f"{folder / pose_id}.json records no file hashes (exported by an older vinetwin)"
+    for ext in ("ply", "pcd"):
+        path = folder / f"{pose_id}.{ext}"
+        if not path.exists():
+            return f"{path} is missing"
+        if file_sha256(path) != want.get(ext):
+            return f"{path} does not match the hash its sidecar recorded (truncated or changed)"
+    return ""
+
+
 def reference_files(cloud: Cloud) -> dict[str, bytes]:
     """A reference cloud's files, by extension: `ply`, binary little-endian PLY with float32
     x y z (and nx ny nz when the cloud has normals); `pcd`, PCL's PCD v0.7, binary, fields x y z

@@ -76,12 +76,13 @@ def apply_d405_model(
         rng: the random generator (seed it for reproducible references).
         config: the sensor settings; default SensorConfig().
     """
-    from vinetwin import _bands, _kernels
+    from vinetwin import _bands, _cloud_kernels
+    from vinetwin.render import _sensor_kernels
 
     cfg = config or SensorConfig()
     src = camera.check_depth(depth)
     d = np.empty(src.shape, np.float32)
-    r0, r1, c0, c1 = _kernels.clean_depth(src, d)  # 0 where not finite or negative
+    r0, r1, c0, c1 = _sensor_kernels.clean_depth(src, d)  # 0 where not finite or negative
     if not cfg.enabled:
         return d
     if not (0 <= cfg.edge_invalid <= 1 and 0 <= cfg.edge_smear <= 1 and 0 <= cfg.dropout <= 1):
@@ -103,30 +104,34 @@ def apply_d405_model(
         # silhouette pixels, then random numbers drawn for them only (a small part of the image)
         w, jump = int(cfg.edge_width), np.float32(cfg.edge_jump)
         if bands == 1:
-            ev, eu, nv, fv = _kernels.d405_edges(d, w, jump)
+            ev, eu, nv, fv = _sensor_kernels.d405_edges(d, w, jump)
         else:
-            parts = _bands.run(_kernels.d405_edges_rows, (d, w, jump), _bands.even(rows, bands))
+            parts = _bands.run(
+                _sensor_kernels.d405_edges_rows, (d, w, jump), _bands.even(rows, bands)
+            )
             ev, eu, nv, fv = (np.concatenate([p[k] for p in parts]) for k in range(4))
         u1 = rng.random(len(ev), dtype=np.float32)
         u2 = rng.random(len(ev), dtype=np.float32)
         u3 = rng.random(len(ev), dtype=np.float32)
-        _kernels.d405_silhouettes(
+        _sensor_kernels.d405_silhouettes(
             d, ev, eu, nv, fv, u1, u2, u3, np.float32(1 + cfg.edge_jump),
             np.float32(cfg.edge_fatten), np.float32(cfg.edge_invalid),
             np.float32(cfg.edge_invalid + (1 - cfg.edge_invalid) * cfg.edge_smear),
         )  # fmt: skip
 
     # the rest touches valid pixels only, in row-major order
-    before = _kernels.valid_rows(d, 0.0, np.inf)  # valid pixels before each row
+    before = _cloud_kernels.valid_rows(d, 0.0, np.inf)  # valid pixels before each row
     n = int(before[-1])
     sub = camera.subpixel if cfg.subpixel is None else cfg.subpixel
-    normal = _kernels.standard_normals(rng, n) if cfg.noise else np.zeros(0)  # numpy's stream
+    normal = (
+        _sensor_kernels.standard_normals(rng, n) if cfg.noise else np.zeros(0)
+    )  # numpy's stream
     drop = rng.random(n) if cfg.dropout > 0 else np.zeros(0)
     args = (
         d, normal, drop, 1.0 + cfg.bias if cfg.bias else 1.0, float(sub),
         camera.fx * camera.baseline, float(cfg.dropout), camera.min_depth, camera.max_depth,
         camera.depth_unit if cfg.quantize else 0.0, before,
     )  # fmt: skip
-    _bands.run(_kernels.d405_axial, args, _bands.cuts(before, bands))
+    _bands.run(_sensor_kernels.d405_axial, args, _bands.cuts(before, bands))
     full[box] = d
     return full

@@ -43,54 +43,7 @@ from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.errors import InputError, raise_if_interrupt
 from vinetwin.frames import Array, check_pose, make_pose, pose_error, so3_exp, transform_points
 from vinetwin.registration.features import fpfh, ransac_proposal
-
-
-@dataclass(frozen=True, kw_only=True)
-class ArrivalConfig:
-    """Settings of the arrival registration."""
-
-    voxel: float = 0.004
-    """Voxel of the registration clouds (m)."""
-    feature_radius: float = 0.02
-    """FPFH radius (m)."""
-    max_translation: float = 0.15
-    """Largest correction of the belief accepted (m): the platform's error bound."""
-    max_rotation: float = 0.35
-    """Largest rotation correction accepted (rad)."""
-    search_translation: float = 0.10
-    """Radius of the grid of translation candidates (m)."""
-    grid_step: float = 0.02
-    """Spacing of the translation candidates (m): within the refinement's reach (5 voxels)."""
-    rotation_step: float = 0.13
-    """Spacing of the rotation candidates (rad, 7.5 degrees); two steps each way per axis."""
-    screen_points: int = 200
-    """Live points used to screen the candidates."""
-    refine: int = 16
-    """Candidates refined by ICP and scored by rendering."""
-    final_threshold: float = 0.003
-    """Pairing distance of the final ICP level and of the score (m)."""
-    min_score: float = 0.5
-    """Below this F-score of the live view against the view expected from the best pose:
-    "too little agreement"."""
-    ambiguity: float = 0.9
-    """A second candidate at a different pose scoring at least this share of the best:
-    "ambiguous"."""
-    distinct_translation: float = 0.01
-    """Candidates further apart than this (m)..."""
-    distinct_rotation: float = 0.05
-    """...or turned more than this (rad) are different poses."""
-    score_scale: float = 0.5
-    """Resolution of the expected views rendered for the score, as a share of the camera's."""
-    ransac_iterations: int = 100_000
-    """RANSAC iterations of the feature-matching candidate; 0: no feature candidate."""
-    seed: int = 0
-    """Seed of RANSAC."""
-
-    def __post_init__(self) -> None:
-        if not (0 < self.min_score <= 1 and 0 < self.ambiguity <= 1):
-            raise InputError("min_score and ambiguity must lie in (0, 1]")
-        if self.voxel <= 0 or self.final_threshold <= 0 or not 0 < self.score_scale <= 1:
-            raise InputError("voxel and final_threshold must be positive, score_scale in (0, 1]")
+from vinetwin.servo.config import ArrivalConfig
 
 
 @dataclass

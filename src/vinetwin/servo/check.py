@@ -1,7 +1,7 @@
 """`vinetwin check-reference`: on the day, is a twin still valid at a pruning pose?
 
 With the camera at the pruning pose (the robot sent there), a few live frames are aligned to the
-pose's reference by point-to-plane ICP from the identity, the guess a twin that is still right
+pose's reference by the pose's own ICP variant (the one its servo uses) from the identity, the guess a twin that is still right
 makes exact. The answer, per frame and as medians:
 
 - the *correction*: where ICP moved the live view to fit the reference (mm, rad). A vine (or a
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -28,7 +28,7 @@ from vinetwin.cloud import Cloud, perceive
 from vinetwin.files import save_figure
 from vinetwin.frames import Array, pose_error, transform_points
 from vinetwin.registration.icp import ICP, ICPConfig
-from vinetwin.servo.config import CheckConfig
+from vinetwin.servo.config import CheckConfig, Variant
 from vinetwin.twin.model import Twin
 
 
@@ -40,6 +40,8 @@ class ReferenceCheck:
     verdict: str
     """"twin still valid", "vine moved" or "vine changed here"."""
     reason: str
+    variant: str = ""
+    """The ICP variant that aligned the frames."""
     correction_mm: float = float("nan")
     correction_rad: float = float("nan")
     residual_mm: float = float("nan")
@@ -69,8 +71,9 @@ def check_reference(
     """Aligns each live depth image (metres, taken at the pose) to the pose's reference; returns
     the check and, per frame, the live cloud with its alignment (for the picture)."""
     cfg = config
+    variant = cfg.variant or twin.pose(pose_id).icp_variant
     icp = ICP(
-        reference, ICPConfig(variant="point_to_plane"), camera=twin.camera,
+        reference, ICPConfig(variant=cast(Variant, variant)), camera=twin.camera,
         max_depth=twin.perception.max_depth,
     )  # fmt: skip
     rows, aligned = [], []
@@ -91,7 +94,7 @@ def check_reference(
         if r.converged:
             aligned.append((cloud, r.T_ref_cur))
     good = [x for x in rows if x["ok"]]
-    out = ReferenceCheck(pose_id, "vine changed here", "", frames=rows)
+    out = ReferenceCheck(pose_id, "vine changed here", "", variant, frames=rows)
     if not good:
         why = "; ".join(sorted({str(x["reason"]) for x in rows})) or "no frames"
         out.reason = f"no frame aligned with the reference ({why})"
@@ -181,11 +184,11 @@ def live_depths(twin: Twin, pose_id: str, config: CheckConfig) -> list[Any]:
     cfg = config
     if cfg.camera == "sim":
         from vinetwin.frames import invert, make_pose
-        from vinetwin.render.backends import get_backend
+        from vinetwin.render.backends import raycaster
         from vinetwin.render.sensor import apply_d405_model
 
         mesh = twin.load_mesh()
-        backend = get_backend("open3d", mesh.vertices, mesh.faces, twin.camera)
+        backend = raycaster(mesh.vertices, mesh.faces, twin.camera)
         T = invert(make_pose(t=cfg.sim_offset)) @ np.asarray(twin.pose(pose_id).T_vine_camera)
         rng = np.random.default_rng(cfg.seed)
         out = [apply_d405_model(backend.render(T), twin.camera, rng) for _ in range(cfg.frames)]
@@ -214,13 +217,13 @@ def run_check(
     import json
 
     from vinetwin.files import atomic_write_text, refuse_existing_outputs
-    from vinetwin.servo.runner import reference_cloud
+    from vinetwin.render.reference import reference_for
 
     if out is not None:
         refuse_existing_outputs(out, ("check.json", "check.png"), "--out", overwrite)
     twin = Twin.load(twin_dir)
     pose = twin.pose(config.pose) if config.pose else twin.poses[0]
-    reference = reference_cloud(twin, pose.id)
+    reference = reference_for(twin, pose.id).cloud
     check, aligned = check_reference(
         twin, pose.id, live_depths(twin, pose.id, config), reference, config
     )

@@ -13,9 +13,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Annotated, Literal, get_args
 
-from vinetwin._config import JsonFields
+from vinetwin._config import (
+    CLI_OWN_GROUP,
+    JsonFields,
+    check_at_most,
+    check_counts,
+    check_finite,
+)
 from vinetwin.errors import InputError
 
 #: The ICP variants (the paper's four).
@@ -24,48 +30,16 @@ Variant = Literal["point_to_point", "lm", "point_to_plane", "symmetric"]
 #: (PBVS on the cut point and theta*u, the cut's image on a straight line: `pbvs.target_twist`).
 Law = Literal["eq8", "target"]
 LAWS: tuple[str, ...] = get_args(Law)
-#: The variants that pair their final level against a dense reference (`dense_reference`), and
-#: how much denser it is (the perception voxel divided by this). LM measures its distances to
+#: The variants that pair their final level against a dense reference (`dense_reference`; how
+#: much denser: `cloud.DENSE_FACTOR`). LM measures its distances to
 #: the reference surface (`ICPConfig.lm_model`), which the lattice does not hold.
 DENSE_VARIANTS = frozenset({"point_to_point"})
-DENSE_FACTOR = 4
 #: Where each frame's ICP starts (see `servo.step.Servo`).
 Guess = Literal["kinematic", "previous", "identity"]
 GUESSES: tuple[str, ...] = get_args(Guess)
 #: Every ICP variant, in the paper's order (the same list as `cloud.ICP_VARIANTS`, which core
 #: modules use; a test keeps them equal).
 VARIANTS: tuple[str, ...] = get_args(Variant)
-
-
-def check_finite(config: object, names: tuple[str, ...], positive: bool = False) -> None:
-    """Raises InputError naming the first of `names` that is not a finite number > 0
-    (`positive`) or >= 0: a limit that NaN, infinity, a negative number or a string (a profile
-    file's "0.5") would switch off."""
-    for name in names:
-        v = getattr(config, name)
-        if isinstance(v, bool) or not isinstance(v, int | float):
-            raise InputError(f"{name} must be a number, got {v!r}")
-        if not (math.isfinite(v) and (v > 0 if positive else v >= 0)):
-            raise InputError(
-                f"{name} must be {'positive' if positive else '>= 0'} and finite, got {v}"
-            )
-
-
-def check_counts(config: object, names: tuple[str, ...], ceiling: int = 2**32) -> None:
-    """Raises InputError naming the first of `names` (seeds, counts of workers) that is not an
-    integer in [0, ceiling)."""
-    for name in names:
-        v = getattr(config, name)
-        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < ceiling:
-            raise InputError(f"{name} must be an integer in [0, {ceiling}), got {v!r}")
-
-
-def check_at_most(config: object, ceilings: dict[str, float], why: str) -> None:
-    """Raises InputError naming the first field of `ceilings` above its ceiling, and `why`."""
-    for name, ceiling in ceilings.items():
-        v = getattr(config, name)
-        if v > ceiling:
-            raise InputError(f"{name} {v:g} is above {ceiling:g} {why}")
 
 
 @dataclass(frozen=True)
@@ -353,6 +327,55 @@ class LoopConfig(JsonFields):
 
 
 @dataclass(frozen=True, kw_only=True)
+class ArrivalConfig(JsonFields):
+    """Settings of the arrival registration (`servo.arrival`), set from the command line of
+    `vinetwin servo` and `check-arrival`-style callers by their `arrival_*` names."""
+
+    voxel: float = 0.004
+    """Voxel of the registration clouds (m)."""
+    feature_radius: float = 0.02
+    """FPFH radius (m)."""
+    max_translation: float = 0.15
+    """Largest correction of the belief accepted (m): the platform's error bound."""
+    max_rotation: float = 0.35
+    """Largest rotation correction accepted (rad)."""
+    search_translation: float = 0.10
+    """Radius of the grid of translation candidates (m)."""
+    grid_step: float = 0.02
+    """Spacing of the translation candidates (m): within the refinement's reach (5 voxels)."""
+    rotation_step: float = 0.13
+    """Spacing of the rotation candidates (rad, 7.5 degrees); two steps each way per axis."""
+    screen_points: int = 200
+    """Live points used to screen the candidates."""
+    refine: int = 16
+    """Candidates refined by ICP and scored by rendering."""
+    final_threshold: float = 0.003
+    """Pairing distance of the final ICP level and of the score (m)."""
+    min_score: float = 0.5
+    """Below this F-score of the live view against the view expected from the best pose:
+    "too little agreement"."""
+    ambiguity: float = 0.9
+    """A second candidate at a different pose scoring at least this share of the best:
+    "ambiguous"."""
+    distinct_translation: float = 0.01
+    """Candidates further apart than this (m)..."""
+    distinct_rotation: float = 0.05
+    """...or turned more than this (rad) are different poses."""
+    score_scale: float = 0.5
+    """Resolution of the expected views rendered for the score, as a share of the camera's."""
+    ransac_iterations: int = 100_000
+    """RANSAC iterations of the feature-matching candidate; 0: no feature candidate."""
+    seed: int = 0
+    """Seed of RANSAC."""
+
+    def __post_init__(self) -> None:
+        if not (0 < self.min_score <= 1 and 0 < self.ambiguity <= 1):
+            raise InputError("min_score and ambiguity must lie in (0, 1]")
+        if self.voxel <= 0 or self.final_threshold <= 0 or not 0 < self.score_scale <= 1:
+            raise InputError("voxel and final_threshold must be positive, score_scale in (0, 1]")
+
+
+@dataclass(frozen=True, kw_only=True)
 class RunnerConfig(JsonFields):
     """One `vinetwin servo` run: which camera and robot, the servo, the limits, the loop, and
     the settings of the live camera, the Franka and the simulated start."""
@@ -393,6 +416,9 @@ class RunnerConfig(JsonFields):
     start from its answer instead of where the robot believes the vine is; a refusal (too
     little agreement, ambiguous) stops the run before any motion. Needs a robot pose (franka,
     the simulation, or a capture folder's recorded poses)."""
+    arrival_settings: Annotated[ArrivalConfig, CLI_OWN_GROUP] = field(default_factory=ArrivalConfig)
+    """The arrival registration's settings (with `arrival`; on the command line
+    `--arrival-settings.NAME`)."""
     profile: str = "ideal"
     """Simulation: error profile (ideal, field or a JSON file of the simulator's FieldProfile;
     see `vinetwin campaign --help`). Its twin source reconstructs the twin once (about a
@@ -435,6 +461,8 @@ class CheckConfig(JsonFields):
     the pose, to try the check; see --sim-offset)."""
     frames: int = 5
     """Frames to align (the verdict takes their medians)."""
+    variant: Variant | Literal[""] = ""
+    """ICP variant of the alignment ("": the pose's own, the one its servo uses)."""
     max_translation: float = 0.003
     """A live view that fits the reference further than this from the pose (m)..."""
     max_rotation: float = 0.02
@@ -451,6 +479,9 @@ class CheckConfig(JsonFields):
     def __post_init__(self) -> None:
         if self.frames < 1:
             raise InputError(f"frames must be >= 1, got {self.frames}")
+        if self.variant and self.variant not in VARIANTS:
+            raise InputError(f"unknown ICP variant '{self.variant}'; choose one of: "
+                             f"{', '.join(VARIANTS)}")  # fmt: skip
         if not all(math.isfinite(v) for v in self.sim_offset) or self.seed < 0:
             raise InputError(f"sim_offset must be finite and seed >= 0, got {self.sim_offset}")
         check_finite(self, ("max_translation", "max_rotation", "max_rmse"), positive=True)

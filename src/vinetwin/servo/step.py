@@ -47,6 +47,7 @@ from vinetwin.errors import raise_if_interrupt
 from vinetwin.frames import Array, check_pose, invert, pose_error, se3_exp, so3_log
 from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
 from vinetwin.registration.search import WideSearch
+from vinetwin.render.reference import Reference
 from vinetwin.servo.config import DENSE_VARIANTS, GUESSES, LAWS, Limits, SafetyConfig, ServoConfig
 from vinetwin.servo.pbvs import Gain, kinematic_guess, pbvs_error, pbvs_twist, target_twist
 
@@ -544,21 +545,20 @@ _WARMED: set[tuple[str, bool]] = set()
 
 
 def make_servo(
-    reference: Cloud,
+    reference: Reference | Cloud,
     camera: CameraModel,
     perception: PerceptionConfig,
     config: ServoConfig,
     limits: Limits | None = None,
     safety: SafetyConfig | None = None,
-    target: Any = None,
-    dense_reference: Cloud | None = None,
 ) -> Servo:
     """The servo a `ServoConfig` describes, for a twin's camera and perception settings: the one
-    the simulation, `vinetwin servo` and the web app build."""
-    from vinetwin.registration.icp import ICPConfig
-
+    the simulation, `vinetwin servo` and the web app build. `reference`: the pose's
+    (`render.reference.reference_for`), whose cut point is the view-keeping law's target and
+    whose dense cloud the dense variants pair against; a bare cloud has neither."""
+    ref = reference if isinstance(reference, Reference) else Reference(reference, None, 0)
     return Servo(
-        reference,
+        ref.cloud,
         icp=ICPConfig(variant=config.variant),
         gain=Gain(l0=config.gain, l_inf=config.gain_far, adaptive=True),
         limits=limits or Limits(),
@@ -569,8 +569,8 @@ def make_servo(
         goal_rotation=config.converged_rotation,
         guess=config.guess,
         law=config.law,
-        target=target,
-        dense_reference=dense_reference if wants_dense(config) else None,
+        target=ref.cut,
+        dense_reference=ref.dense if wants_dense(config) else None,
     )
 
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import shutil
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,15 +35,15 @@ from vinetwin.render.reference import pose_seed
 from vinetwin.sim import report
 from vinetwin.sim.config import CampaignConfig, Disturbance, FaultConfig, FieldProfile, SimConfig
 from vinetwin.sim.paper import PRESETS
-from vinetwin.sim.rig import start_pose
+from vinetwin.sim.session import SimSpec, start_pose
 from vinetwin.sim.simulate import SimRun, simulate
-from vinetwin.sim.workers import run_jobs, twin_context, worker_arm, worker_backend
+from vinetwin.sim.workers import run_jobs, twin_context, worker_world
 from vinetwin.twin.model import Twin
 
 log = logging.getLogger(__name__)
 
 #: Version of the per-run files under a report's `runs/` folder.
-CAMPAIGN_FORMAT = 2
+CAMPAIGN_FORMAT = 3
 #: The variant of the control-law comparison (its runs under the grid's law are the grid's).
 LAW_VARIANT = "point_to_plane"
 
@@ -53,16 +53,7 @@ class _Job:
     key: str
     group: str
     start_index: int
-    goal: list[list[float]]
-    start: list[list[float]]
-    config: dict[str, Any]
-    disturbance: dict[str, Any]
-    reference_seed: int
-    pose_id: str
-    robot: str | None = None
-    """None: kinematic camera; "" vinetwin's Panda; else a Panda model path."""
-    cut: list[float] | None = None
-    """The cut point (vine frame): the view-keeping law's target."""
+    spec: SimSpec
     context: dict[str, Any] = field(default_factory=dict)
     """The twin, for the worker (`twin_context`)."""
     reference: dict[str, Any] = field(default_factory=dict)
@@ -70,12 +61,25 @@ class _Job:
     `mesh_sha256`), which renders the reference while the scene stays the true vine."""
 
     def digest(self) -> str:
-        """What this run's result depends on: the job without the meshes' locations (their
-        content is in the `mesh_sha256` entries)."""
-        data = asdict(self)
-        data["context"] = {k: v for k, v in self.context.items() if k != "mesh_path"}
-        data["reference"] = {k: v for k, v in self.reference.items() if k != "mesh_path"}
-        data["format"] = CAMPAIGN_FORMAT
+        """What this run's result depends on: the run, and the twin and reference meshes by
+        their content (`mesh_sha256`), not their location."""
+        s = self.spec
+        data = {
+            "key": self.key,
+            "group": self.group,
+            "start_index": self.start_index,
+            "goal": np.asarray(s.goal, float).tolist(),
+            "start": np.asarray(s.start, float).tolist(),
+            "config": s.config.to_dict(),
+            "disturbance": s.disturbance.to_dict(),
+            "reference_seed": s.reference_seed,
+            "pose_id": s.pose_id,
+            "robot": s.robot,
+            "cut": None if s.cut is None else np.asarray(s.cut, float).tolist(),
+            "context": {k: v for k, v in self.context.items() if k != "mesh_path"},
+            "reference": {k: v for k, v in self.reference.items() if k != "mesh_path"},
+            "format": CAMPAIGN_FORMAT,
+        }
         return json_sha256(data)
 
     @property
@@ -85,24 +89,8 @@ class _Job:
 
 
 def _run_job(job: _Job) -> dict[str, Any]:
-    dist = job.disturbance
-    backend, perception = worker_backend(job.context)
-    reference_backend = (
-        worker_backend({**job.context, **job.reference})[0] if job.reference else None
-    )
-    run: SimRun = simulate(
-        backend,
-        np.asarray(job.goal),
-        np.asarray(job.start),
-        job.reference_seed,
-        perception,
-        SimConfig.from_dict(job.config),
-        disturbance=Disturbance.from_dict(dist) if dist else None,
-        pose_id=job.pose_id,
-        arm=worker_arm(job.context, job.robot, np.asarray(job.goal)),
-        cut=None if job.cut is None else np.asarray(job.cut),
-        reference_backend=reference_backend,
-    )
+    spec = job.spec
+    run: SimRun = simulate(spec, worker_world(job.context, job.reference, spec))
     fault_point(job.key, "run")
     return {
         "key": job.key,
@@ -110,8 +98,8 @@ def _run_job(job: _Job) -> dict[str, Any]:
         "start_index": job.start_index,
         "summary": run.summary(),
         "series": run.series(step=1),
-        "goal": job.goal,
-        "disturbance_time": dist.get("time", -1.0) if dist else -1.0,
+        "goal": np.asarray(spec.goal, float).tolist(),
+        "disturbance_time": spec.disturbance.time,
     }
 
 
@@ -147,15 +135,14 @@ def plan(twin: Twin, cfg: CampaignConfig, cache: Path | None = None) -> list[_Jo
     starts = []
     for i, (t, r) in enumerate(PRESETS[cfg.preset]):
         rng = np.random.default_rng([cfg.seed, i])
-        starts.append(start_pose(goal, cut, t, r, rng, twin.camera, twin.perception.max_depth))
+        starts.append(start_pose(goal, cut, (t, r), rng, twin.camera, twin.perception.max_depth))
 
     ctx = twin_context(twin)
 
     def job(key: str, group: str, i: int, sim: SimConfig, dist: Disturbance | None = None) -> _Job:
-        return _Job(key, group, i, goal.tolist(), starts[i].tolist(), sim.to_dict(),
-                    dist.to_dict() if dist else {}, ref_seed, pose.id, robot,
-                    np.asarray(cut, float).tolist(), ctx,
-                    rebuilt if sim.profile.on("twin") else {})  # fmt: skip
+        spec = SimSpec(goal, starts[i], sim, pose.id, np.asarray(cut, float),
+                       dist or Disturbance(), ref_seed, robot)  # fmt: skip
+        return _Job(key, group, i, spec, ctx, rebuilt if sim.profile.on("twin") else {})
 
     jobs = [
         job(f"grid/{i}/{v}", "grid", i, replace(base, variant=v))

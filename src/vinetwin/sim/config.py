@@ -10,17 +10,10 @@ import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal, get_args
 
-from vinetwin._config import JsonFields
+from vinetwin._config import JsonFields, check_at_most, check_counts, check_finite
 from vinetwin.errors import InputError
-from vinetwin.servo.config import (
-    Law,
-    Limits,
-    ServoConfig,
-    Variant,
-    check_at_most,
-    check_counts,
-    check_finite,
-)
+from vinetwin.reconstruct.config import TSDF_VOXEL
+from vinetwin.servo.config import Law, Limits, ServoConfig, Variant
 from vinetwin.sim.paper import PRESETS
 
 #: The longest simulated run (s) a campaign, validation or run accepts: the paper's slowest
@@ -130,7 +123,7 @@ class FieldProfile(JsonFields):
     """twin: the capture's robot pose error (m, standard deviation per axis)."""
     twin_pose_noise_rotation: float = 0.002
     """twin: and its rotation (rad, per axis)."""
-    twin_voxel: float = 0.0015
+    twin_voxel: float = TSDF_VOXEL
     """twin: the fusion's TSDF voxel (m)."""
     twin_trajectory: Literal["grid", "poses"] = "grid"
     """twin: the capture's viewpoints: grid (a sweep over the whole vine from one side) or poses
@@ -442,7 +435,7 @@ class FidelityConfig(JsonFields):
     pose_noise: tuple[float, ...] = (0.0, 0.001, 0.003)
     """Capture pose errors swept (m per axis; the rotation error is 2 rad per m of it, e.g.
     1 mm with 2 mrad), at the middle capture size."""
-    voxels: tuple[float, ...] = (0.0015,)
+    voxels: tuple[float, ...] = (TSDF_VOXEL,)
     """Fusion voxels swept (m), at the middle capture size and pose noise."""
     trajectory: Literal["grid", "poses"] = "grid"
     """The captures' viewpoints: grid (the whole vine from one side) or poses (around the

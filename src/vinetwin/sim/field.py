@@ -139,12 +139,12 @@ def view_coverage(
 ) -> float:
     """The rebuilt mesh's valid depth pixels at the view over the true mesh's (Open3D ray
     casting at a quarter of the resolution; 1.0 when the true mesh shows nothing either)."""
-    from vinetwin.render.backends import get_backend
+    from vinetwin.render.backends import raycaster
 
     small = camera.scaled(max(camera.width // 4, 1), max(camera.height // 4, 1))
     counts = []
     for m in (true_mesh, rebuilt_mesh):
-        backend = get_backend("open3d", m.vertices, m.faces, small)
+        backend = raycaster(m.vertices, m.faces, small)
         try:
             counts.append(int((backend.render(T_vine_camera) > 0).sum()))
         finally:

@@ -41,16 +41,11 @@ from typing import Any
 import numpy as np
 
 from vinetwin.capture.folder import CaptureWriter
-from vinetwin.cloud import PerceptionConfig
 from vinetwin.frames import Array, invert, pose_error, transform_points
-from vinetwin.render.backends import DepthBackend
-from vinetwin.render.reference import dense_cloud, render_reference
-from vinetwin.render.sensor import SensorConfig
-from vinetwin.servo.config import DENSE_FACTOR, LoopConfig, SafetyConfig
+from vinetwin.servo.config import LoopConfig
 from vinetwin.servo.loop import Cycle, CycleLog, run_loop
-from vinetwin.servo.step import wants_dense
 from vinetwin.sim.config import Disturbance, SimConfig
-from vinetwin.sim.rig import build_rig
+from vinetwin.sim.session import SimSpec, SimWorld
 
 
 @dataclass
@@ -146,55 +141,30 @@ class SimRun:
 
 
 def simulate(
-    backend: DepthBackend,
-    goal: Array,
-    start: Array,
-    reference_seed: int,
-    perception: PerceptionConfig,
-    config: SimConfig,
+    spec: SimSpec,
+    world: SimWorld,
     *,
-    disturbance: Disturbance | None = None,
-    sensor: SensorConfig | None = None,
-    pose_id: str = "",
-    safety: SafetyConfig | None = None,
-    arm: Any = None,
     log: CycleLog | None = None,
     record: str | Path | None = None,
-    cut: Array | None = None,
-    reference_backend: DepthBackend | None = None,
 ) -> SimRun:
-    """One closed-loop run from `start` to `goal` (camera poses in the vine frame), through
+    """One closed-loop run (`spec`, built on `world` by `SimSpec.setup`) through
     `loop.run_loop`, the loop that drives hardware.
 
-    With `arm` (a `sim.panda.PandaArm` whose scene holds the vine at `arm.T_base_vine`), the
-    camera is the D405 on the Panda's hand: the arm first reaches the start pose (a start it
-    cannot reach raises InputError), then each twist drives its joints. Without it the camera
-    flies freely. `log` receives every cycle (with the true error); `record` writes the frames,
-    with their stamps and robot poses, as a capture folder that `FolderSource` replays. `cut`:
-    the cut point in the vine frame (default: 15 cm along the goal camera's axis), the target
-    of `--law target` and the point whose image path `SimRun.cut_uv` records.
-    `reference_backend`: renders the reference instead of `backend` (the field profile's twin
-    source: a reconstructed twin's mesh, while the scene stays the true vine)."""
-    cfg = config
-    camera = backend.camera
-    sensor = sensor or SensorConfig()
-    dist = disturbance or Disturbance()
-    rng = np.random.default_rng(cfg.seed)
-    rendered = render_reference(
-        reference_backend or backend, goal, perception, sensor, reference_seed
-    )
-    ref = rendered.cloud
-    dense = None
-    if wants_dense(cfg):
-        dense = dense_cloud(rendered.depth, camera, perception, DENSE_FACTOR)
-    run = SimRun(cfg, pose_id, np.asarray(goal, float), np.asarray(start, float), dist)
-    cut = goal[:3, 3] + 0.15 * goal[:3, 2] if cut is None else np.asarray(cut, float)
-    rig = build_rig(
-        backend, goal, start, ref, perception, cfg, rng, arm=arm, disturbance=dist,
-        sensor=sensor, safety=safety, cut=cut, dense_reference=dense,
-    )  # fmt: skip
+    With the world's arm the camera is the D405 on the Panda's hand: the arm first reaches the
+    start pose (a start it cannot reach raises InputError), then each twist drives its joints.
+    Without it the camera flies freely. `log` receives every cycle (with the true error);
+    `record` writes the frames, with their stamps and robot poses, as a capture folder that
+    `FolderSource` replays."""
+    cfg = spec.config
+    camera = world.backend.camera
+    goal = np.asarray(spec.goal, float)
+    dist = spec.disturbance
+    run = SimRun(cfg, spec.pose_id, goal, np.asarray(spec.start, float), dist)
+    cut = spec.cut_point()
+    rig = spec.setup(world)
     servo, robot = rig.servo, rig.robot
-    servo.warm_up(rendered.depth)  # compile before the first frame, whose time is measured
+    if rig.reference.depth is not None:  # compile before the first frame, whose time is measured
+        servo.warm_up(rig.reference.depth)
     source: Any = rig.source
     faulty = None
     if cfg.faults.classes:

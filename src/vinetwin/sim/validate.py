@@ -35,12 +35,12 @@ from vinetwin.files import (
 from vinetwin.jobstore import JobStore
 from vinetwin.render.reference import pose_seed
 from vinetwin.sim.config import FaultConfig, SimConfig, ValidateConfig
-from vinetwin.sim.rig import start_pose
+from vinetwin.sim.session import SimSpec, start_pose
 from vinetwin.sim.simulate import simulate
-from vinetwin.sim.workers import run_jobs, twin_context, worker_backend
+from vinetwin.sim.workers import run_jobs, twin_context, worker_world
 from vinetwin.twin.model import Twin, check_id
 
-VALIDATION_FORMAT = 1
+VALIDATION_FORMAT = 2
 
 
 @dataclass
@@ -58,6 +58,8 @@ class _Group:
     """The twin, for the worker (`workers.twin_context`)."""
     reference: dict[str, Any]
     """Under a field profile's twin source: the reconstructed twin's mesh (see campaign)."""
+    cut: list[float]
+    """The pose's cut point (vine frame): the view-keeping law's target."""
 
 
 def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: ValidateConfig) -> str:
@@ -67,6 +69,7 @@ def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: Validate
             "format": VALIDATION_FORMAT,
             "mesh": mesh_sha,
             "T": np.round(np.asarray(pose.T_vine_camera), 12).tolist(),
+            "cut": np.round(twin.cut_point(pose.cut_point).point, 12).tolist(),
             "camera": twin.camera.to_dict(),
             "perception": twin.perception.to_dict(),
             "variant": variant,
@@ -82,16 +85,13 @@ def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: Validate
 
 
 def _run_group(group: _Group) -> dict[str, Any]:
-    backend, perception = worker_backend(group.context)
-    ref = worker_backend({**group.context, **group.reference})[0] if group.reference else None
     goal = np.asarray(group.goal)
     runs = []
     for k, start in enumerate(group.starts):
         sim = SimConfig.from_dict({**group.sim, "seed": group.sim["seed"] + k})
-        run = simulate(
-            backend, goal, np.asarray(start), group.reference_seed, perception, sim,
-            reference_backend=ref,
-        )  # fmt: skip
+        spec = SimSpec(goal, np.asarray(start), sim, group.pose_id, np.asarray(group.cut),
+                       reference_seed=group.reference_seed)  # fmt: skip
+        run = simulate(spec, worker_world(group.context, group.reference, spec))
         runs.append({"fraction": group.fractions[k], **run.summary()})
         fault_point(f"{group.pose_id}.{group.variant}", f"run{k}")
     basin = 0.0
@@ -227,7 +227,7 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
                 continue
             rng = np.random.default_rng([cfg.seed, int(pose_seed(cfg.seed, pid))])
             starts = [
-                start_pose(goal, cut, f * cfg.radius_translation, f * cfg.radius_rotation, rng,
+                start_pose(goal, cut, (f * cfg.radius_translation, f * cfg.radius_rotation), rng,
                            twin.camera, twin.perception.max_depth).tolist()
                 for f in fractions
             ]  # fmt: skip
@@ -249,6 +249,7 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
                     str(out),
                     ctx,
                     rebuilt,
+                    np.asarray(cut, float).tolist(),
                 )
             )
     return twin, groups, results

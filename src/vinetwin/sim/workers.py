@@ -22,6 +22,7 @@ from vinetwin.executor import (
 )
 from vinetwin.files import file_sha256
 from vinetwin.mesh import load_mesh_arrays
+from vinetwin.sim.session import SimSpec, SimWorld
 from vinetwin.twin.model import Twin
 
 log = logging.getLogger(__name__)
@@ -63,11 +64,16 @@ def _worker_twin(ctx: dict[str, Any]) -> _TwinWorker:
     return worker_cache(key, lambda: _TwinWorker(ctx))
 
 
-def worker_backend(ctx: dict[str, Any]) -> tuple[Any, PerceptionConfig]:
-    """The renderer and perception settings of a twin (`twin_context`) in this worker process,
-    built on first use."""
+def worker_world(ctx: dict[str, Any], reference: dict[str, Any], spec: SimSpec) -> SimWorld:
+    """The world a run (`spec`) is built on in this worker process: the twin's (`twin_context`)
+    renderer and perception settings, the renderer of the reference when `reference` names
+    another mesh (the field profile's reconstructed twin: `mesh_path`, `mesh_sha256`), and the
+    spec's Panda; each built on first use and kept for the worker's next runs."""
     w = _worker_twin(ctx)
-    return w.backend, w.perception
+    ref = _worker_twin({**ctx, **reference}).backend if reference else None
+    arm = worker_arm(ctx, spec.robot, spec.goal)
+    T_flange_camera = np.asarray(ctx["T_flange_camera"]) if arm is not None else None
+    return SimWorld(w.backend, w.perception, ref, arm=arm, T_flange_camera=T_flange_camera)
 
 
 def worker_arm(ctx: dict[str, Any], robot: str | None, goal: Any) -> Any:

@@ -20,7 +20,11 @@ import numpy as np
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, make_pose, unit_vector
 
+#: The distance (m) from the camera to its cut point along the optical axis: the paper's 0.15 m
+#: by default, and the range a person may set (a D405 sees from 7 cm; beyond 0.6 m a cane is a
+#: few pixels wide). The web app and `Twin.add_pose` read these.
 DEFAULT_STANDOFF = 0.15
+STANDOFF_RANGE = (0.05, 0.6)
 #: Direction the camera looks along by default: from the robot's side (-Y) towards the row.
 DEFAULT_TOWARD: Array = np.array([0.0, 1.0, 0.0])
 

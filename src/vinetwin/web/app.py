@@ -25,7 +25,7 @@ import numpy as np
 from vinetwin.cloud import ICP_VARIANTS
 from vinetwin.conventions import viser_wxyz_position
 from vinetwin.errors import InputError, VinetwinError
-from vinetwin.twin.poses import Approach
+from vinetwin.twin.poses import DEFAULT_STANDOFF, STANDOFF_RANGE, Approach
 from vinetwin.web.config import WebConfig
 from vinetwin.web.session import AuthoringSession
 
@@ -72,38 +72,7 @@ class App:
         self.lock = threading.RLock()
         self.last_latency = math.nan
         self._warming_up = False  # the start's warm-up is running (said in the status line)
-        s = self.server
-        g = s.gui
-        self.status = g.add_markdown("")
-        with g.add_folder("Pose"):
-            self.pose_dd: Any = g.add_dropdown("pose", ("-",))
-            self.name = g.add_text("name", "")
-            self.variant: Any = g.add_dropdown(
-                "ICP variant", ICP_VARIANTS, initial_value="point_to_plane"
-            )
-            self.standoff = g.add_number("standoff (m)", 0.15, min=0.05, max=0.6, step=0.005)
-            self.azimuth = g.add_number("azimuth (deg)", 0.0, step=1.0)
-            self.elevation = g.add_number("elevation (deg)", 0.0, min=-89, max=89, step=1.0)
-            self.roll = g.add_number("roll (deg)", 0.0, step=1.0)
-            self.apply = g.add_button("Apply")
-            self.snap = g.add_button("Snap axis to cut point")
-            self.delete = g.add_button("Delete pose")
-        with g.add_folder("Edit"):
-            self.undo = g.add_button("Undo")
-            self.redo = g.add_button("Redo")
-            self.save = g.add_button("Save")
-        with g.add_folder("Camera view"):
-            self.preview_btn = g.add_button("Preview")
-            self.image = g.add_image(np.zeros((48, 85, 3), np.uint8), label="D405 depth")
-        with g.add_folder("References and servo"):
-            self.export_btn = g.add_button("Export references")
-            self.progress = g.add_progress_bar(0.0, animated=False)
-            self.validate_btn = g.add_button("Validate pose (simulated servo)")
-            self.validation = g.add_markdown("")
-        with g.add_folder("View", expand_by_default=False):
-            self.show_skeleton = g.add_checkbox("skeleton", False)
-            self.show_candidates = g.add_checkbox("cut candidates", True)
-        self.listing = g.add_markdown("")
+        self._build_panel()
         # the scene nodes the page has, by id, with what they were drawn from (`_sync_scene`)
         self._cut_nodes: dict[str, tuple[Any, Any]] = {}
         self._pose_nodes: dict[str, tuple[Any, ...]] = {}
@@ -117,7 +86,7 @@ class App:
         self.vine_mesh: tuple[np.ndarray, np.ndarray] | None = None
         self.vine_display = "none"
         self._static_scene()
-        self._bind()
+        self.server.scene.on_click()(self._on_click)
         self.refresh()
         self._warming = threading.Thread(target=self._warm_up, daemon=True, name="warm-up")
         self._warming.start()
@@ -417,96 +386,120 @@ class App:
         self._gizmo_key = key
 
     # ------------------------------------------------------------------ events
-    def _bind(self) -> None:
-        s = self.server
+    def _build_panel(self) -> None:
+        """The side panel, each widget with its callback attached where it is made."""
+        g, sess, on = self.server.gui, self.session, self._guarded
+        self.status = g.add_markdown("")
+        with g.add_folder("Pose"):
+            self.pose_dd: Any = g.add_dropdown("pose", ("-",))
+            self.pose_dd.on_update(on(lambda: setattr(sess, "selected", self._dropdown_pose())))
+            self.name = g.add_text("name", "")
+            self.variant: Any = g.add_dropdown(
+                "ICP variant", ICP_VARIANTS, initial_value="point_to_plane"
+            )
+            lo, hi = STANDOFF_RANGE
+            self.standoff = g.add_number(
+                "standoff (m)", DEFAULT_STANDOFF, min=lo, max=hi, step=0.005
+            )
+            self.azimuth = g.add_number("azimuth (deg)", 0.0, step=1.0)
+            self.elevation = g.add_number("elevation (deg)", 0.0, min=-89, max=89, step=1.0)
+            self.roll = g.add_number("roll (deg)", 0.0, step=1.0)
+            self.apply = g.add_button("Apply")
+            self.apply.on_click(on(self._apply))
+            self.snap = g.add_button("Snap axis to cut point")
+            self.snap.on_click(on(lambda: sess.snap(sess.selected) if sess.selected else None))
+            self.delete = g.add_button("Delete pose")
+            self.delete.on_click(
+                on(lambda: sess.delete_pose(sess.selected) if sess.selected else None)
+            )
+        with g.add_folder("Edit"):
+            self.undo = g.add_button("Undo")
+            self.undo.on_click(on(sess.undo))
+            self.redo = g.add_button("Redo")
+            self.redo.on_click(on(sess.redo))
+            self.save = g.add_button("Save")
+            self.save.on_click(on(sess.save))
+        with g.add_folder("Camera view"):
+            self.preview_btn = g.add_button("Preview")
+            self.preview_btn.on_click(
+                on(lambda: self._show_preview(sess.selected) if sess.selected else None)
+            )
+            self.image = g.add_image(np.zeros((48, 85, 3), np.uint8), label="D405 depth")
+        with g.add_folder("References and servo"):
+            self.export_btn = g.add_button("Export references")
+            self.export_btn.on_click(lambda _: self._in_thread(self._export))
+            self.progress = g.add_progress_bar(0.0, animated=False)
+            self.validate_btn = g.add_button("Validate pose (simulated servo)")
+            self.validate_btn.on_click(lambda _: self._in_thread(self._validate))
+            self.validation = g.add_markdown("")
+        with g.add_folder("View", expand_by_default=False):
+            self.show_skeleton = g.add_checkbox("skeleton", False)
+            self.show_skeleton.on_update(self._toggle_layers)
+            self.show_candidates = g.add_checkbox("cut candidates", True)
+            self.show_candidates.on_update(self._toggle_layers)
+        self.listing = g.add_markdown("")
 
-        @s.scene.on_click()
-        def _(event: Any) -> None:
-            if event.ray_origin is None:
-                return
-            t0 = time.perf_counter()
+    def _dropdown_pose(self) -> str:
+        return self.pose_dd.value if self.pose_dd.value != "-" else ""
+
+    @staticmethod
+    def _in_thread(fn: Any) -> None:
+        threading.Thread(target=fn, daemon=True).start()
+
+    def _guarded(self, fn: Any) -> Any:
+        """A widget callback: a person's edit (not the server's own refresh) under the lock, its
+        error shown in the status line, the panel refreshed."""
+
+        def run(event: Any) -> None:
+            if getattr(event, "client", None) is None:
+                return  # the server changed the widget itself (refresh): not a person's edit
             with self.lock:
                 try:
-                    # saved right after the preview is on its way, not before
-                    hit = self.session.click(event.ray_origin, event.ray_direction, save=False)
+                    fn()
                 except VinetwinError as exc:
-                    self.session.problem = f"cannot place a cut point there: {exc}"
-                    hit = None
-                if hit is None:
-                    self.refresh()
-                    return
-                try:
-                    # one batch of messages, so the page applies the preview, the new pose
-                    # and the panel in one frame (each frame is costly where the page draws
-                    # in software)
-                    with self.server.atomic():
-                        try:
-                            self._show_preview(hit[1].id)
-                        finally:
-                            self.last_latency = time.perf_counter() - t0
-                            self.refresh()
-                finally:
-                    self.session.save_if_auto()  # saved once the preview is on its way
-                    if self.session.problem:
-                        self.refresh()  # the save failed: say so
-                log.info(
-                    "cut point %s, pose %s in %.0f ms",
-                    hit[0].id,
-                    hit[1].id,
-                    1000 * self.last_latency,
-                )
+                    self.session.problem = str(exc)
+                    log.error("%s", exc)
+                self.refresh()
 
-        def guarded(fn: Any) -> Any:
-            def run(event: Any) -> None:
-                if getattr(event, "client", None) is None:
-                    return  # the server changed the widget itself (refresh): not a person's edit
-                with self.lock:
+        return run
+
+    def _toggle_layers(self, _: Any) -> None:
+        for name, box in (("_skeleton", self.show_skeleton), ("_candidates", self.show_candidates)):
+            handle = getattr(self, name, None)
+            if handle is not None:
+                handle.visible = bool(box.value)
+
+    def _on_click(self, event: Any) -> None:
+        """A click on the vine: a cut point and its pruning pose, previewed at once."""
+        if event.ray_origin is None:
+            return
+        t0 = time.perf_counter()
+        with self.lock:
+            try:
+                # saved right after the preview is on its way, not before
+                hit = self.session.click(event.ray_origin, event.ray_direction, save=False)
+            except VinetwinError as exc:
+                self.session.problem = f"cannot place a cut point there: {exc}"
+                hit = None
+            if hit is None:
+                self.refresh()
+                return
+            try:
+                # one batch of messages, so the page applies the preview, the new pose and the
+                # panel in one frame (each frame is costly where the page draws in software)
+                with self.server.atomic():
                     try:
-                        fn()
-                    except VinetwinError as exc:
-                        self.session.problem = str(exc)
-                        log.error("%s", exc)
-                    self.refresh()
-
-            return run
-
-        sess = self.session
-        self.pose_dd.on_update(
-            guarded(
-                lambda: setattr(
-                    sess, "selected", self.pose_dd.value if self.pose_dd.value != "-" else ""
-                )
+                        self._show_preview(hit[1].id)
+                    finally:
+                        self.last_latency = time.perf_counter() - t0
+                        self.refresh()
+            finally:
+                self.session.save_if_auto()  # saved once the preview is on its way
+                if self.session.problem:
+                    self.refresh()  # the save failed: say so
+            log.info(
+                "cut point %s, pose %s in %.0f ms", hit[0].id, hit[1].id, 1000 * self.last_latency
             )
-        )
-        self.apply.on_click(guarded(self._apply))
-        self.snap.on_click(guarded(lambda: sess.snap(sess.selected) if sess.selected else None))
-        self.delete.on_click(
-            guarded(lambda: sess.delete_pose(sess.selected) if sess.selected else None)
-        )
-        self.undo.on_click(guarded(sess.undo))
-        self.redo.on_click(guarded(sess.redo))
-        self.save.on_click(guarded(sess.save))
-        self.preview_btn.on_click(
-            guarded(lambda: self._show_preview(sess.selected) if sess.selected else None)
-        )
-        self.export_btn.on_click(
-            lambda _: threading.Thread(target=self._export, daemon=True).start()
-        )
-        self.validate_btn.on_click(
-            lambda _: threading.Thread(target=self._validate, daemon=True).start()
-        )
-
-        def toggle(_: Any) -> None:
-            for name, box in (
-                ("_skeleton", self.show_skeleton),
-                ("_candidates", self.show_candidates),
-            ):
-                handle = getattr(self, name, None)
-                if handle is not None:
-                    handle.visible = bool(box.value)
-
-        self.show_skeleton.on_update(toggle)
-        self.show_candidates.on_update(toggle)
 
     def _apply(self) -> None:
         sess = self.session
@@ -593,7 +586,7 @@ class App:
         from vinetwin.servo.config import Variant
         from vinetwin.sim.config import SimConfig
         from vinetwin.sim.paper import PRESETS
-        from vinetwin.sim.rig import start_pose
+        from vinetwin.sim.session import SimSpec, SimWorld, start_pose
         from vinetwin.sim.simulate import simulate
 
         with self.lock:
@@ -609,10 +602,12 @@ class App:
             backend = sess.renderer()
         rng = np.random.default_rng(0)
         far_t, far_r = PRESETS["quick"][0]
-        start = start_pose(goal, cut, far_t, far_r, rng, twin.camera, twin.perception.max_depth)
-        cfg = SimConfig(variant=cast(Variant, pose.icp_variant))
+        start = start_pose(goal, cut, (far_t, far_r), rng, twin.camera, twin.perception.max_depth)
+        spec = SimSpec(
+            goal, start, SimConfig(variant=cast(Variant, pose.icp_variant)), pose.id, cut
+        )
         try:
-            run = simulate(backend, goal, start, 0, twin.perception, cfg, cut=cut)
+            run = simulate(spec, SimWorld(backend, twin.perception))
         except VinetwinError as exc:
             self.validation.content = f"validation failed: {exc}"
             return

@@ -96,21 +96,10 @@ class AuthoringSession:
     def picker(self) -> Any:
         """Open3D's ray-casting scene of this twin's mesh (built once), which answers the
         picks: the renderer's own where it is Open3D's."""
-        from vinetwin import _lazy
+        from vinetwin.render.backends import picking_scene
 
         if self._picker is None:
-            r = self.renderer()
-            if r.name == "open3d":
-                self._picker = r.scene
-            else:
-                from vinetwin.render.backends import raycasting_scene
-
-                scene = raycasting_scene(self.vertices, self.faces)
-                # Open3D builds the scene's BVH at its first query: now, not at the first click
-                # (75 ms on the sample)
-                ray = np.array([[0, 0, 0, 0, 0, 1]], np.float32)
-                scene.cast_rays(_lazy.open3d().core.Tensor(ray))
-                self._picker = scene
+            self._picker = picking_scene(self.renderer(), self.vertices, self.faces)
         return self._picker
 
     def close(self) -> None:
@@ -239,20 +228,15 @@ class AuthoringSession:
 
     # ------------------------------------------------------------------ what the camera sees
     def preview(self, pose_id: str) -> Preview:
-        """The reference cloud of a pose through the render module's default backend."""
+        """The reference cloud of a pose as it stands now (rendered with this session's
+        renderer and the export's noise seed: `render.reference.reference_for`)."""
         from vinetwin.frames import transform_points
-        from vinetwin.render.reference import pose_seed, render_reference
-        from vinetwin.render.sensor import SensorConfig
+        from vinetwin.render.reference import reference_for
 
         twin = self._require()
         pose = twin.pose(pose_id)
-        ref = render_reference(
-            self.renderer(),
-            pose.T_vine_camera,
-            twin.perception,
-            SensorConfig(),
-            pose_seed(0, pose.id),
-        )
+        ref = reference_for(twin, pose.id, use_exported=False, renderer=self.renderer())
+        assert ref.depth is not None  # rendered, not read
         pts = (
             transform_points(pose.T_vine_camera, ref.cloud.points)
             if len(ref.cloud)

@@ -1,0 +1,105 @@
+"""The reconstruction's settings, declared once: the TSDF fusion's (`FusionConfig`, its voxel,
+truncation rule and depth range), depth odometry's (`OdometryConfig`) and what `vinetwin
+reconstruct` runs (`ReconstructConfig`). Light to import: the command line reads it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Annotated, Literal
+
+from vinetwin._config import CLI_OWN_GROUP, JsonFields, check_finite
+from vinetwin.cloud import PerceptionConfig
+from vinetwin.errors import InputError
+
+if TYPE_CHECKING:
+    from vinetwin.registration.icp import ICPConfig
+
+#: The TSDF voxel (m): a 5 mm cane is 3 voxels across.
+TSDF_VOXEL = 0.0015
+#: The SDF truncation distance, in voxels (Open3D's examples use 4-8; 4 keeps thin canes apart).
+TRUNCATION_VOXELS = 4
+#: The farthest depth fused (m): beyond it the D405's noise blurs canes.
+FUSED_DEPTH_MAX = 0.5
+
+
+@dataclass(frozen=True, kw_only=True)
+class FusionConfig:
+    voxel: float = TSDF_VOXEL
+    """TSDF voxel size (m)."""
+    truncation: float = 0.0
+    """SDF truncation distance (m); 0: `TRUNCATION_VOXELS` voxels."""
+    depth_min: float = 0.0
+    """Nearest depth used (m); never nearer than the capture camera's own minimum
+    (`CameraModel.min_depth`: 0.045-0.100 m by D405 resolution), which is used by default."""
+    depth_max: float = FUSED_DEPTH_MAX
+    """Farthest depth used (m)."""
+    min_component: float = 0.02
+    """Drop connected components with fewer triangles than this fraction of the largest."""
+    smooth_iterations: int = 0
+    """Taubin smoothing iterations (0: none)."""
+    target_triangles: int = 0
+    """Decimate to at most this many triangles (0: keep)."""
+    block_count: int = 200_000
+    """Capacity of the voxel-block hash map (blocks of 8^3 voxels)."""
+    min_pixels: int = 100
+    """A frame with fewer depth pixels than this within [depth_min, depth_max] is skipped and
+    named: it adds nothing a mesh could keep, and Open3D aborts the whole integration on some
+    (four scattered pixels, in a sweep past a large vine: "No block is touched")."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class OdometryConfig(JsonFields):
+    """Depth odometry's perception and ICP schedule (`odometry_poses`): frame-to-frame
+    point-to-plane ICP on clouds coarser than the servo's, over the sweep's range."""
+
+    max_depth: float = 0.5
+    """Farthest depth used (m), as the fusion's."""
+    voxel: float = 0.003
+    """Voxel of the frames' clouds (m)."""
+    coarse_radius: float = 0.05
+    """Pairing distance of the coarse ICP level (m): a step between frames up to about this."""
+    fine_radius: float = 0.015
+    """Pairing distance of the fine ICP level (m)."""
+    max_correspondence: float = 0.005
+    """Pairs further apart than this after alignment count as outliers (m)."""
+
+    def __post_init__(self) -> None:
+        check_finite(self, ("max_depth", "voxel", "coarse_radius", "fine_radius",
+                            "max_correspondence"), positive=True)  # fmt: skip
+        if self.fine_radius > self.coarse_radius:
+            raise InputError(
+                f"fine_radius ({self.fine_radius}) must not exceed coarse_radius "
+                f"({self.coarse_radius})"
+            )
+
+    def perception(self) -> PerceptionConfig:
+        return PerceptionConfig(max_depth=self.max_depth, voxel_size=self.voxel)
+
+    def icp(self) -> ICPConfig:
+        from vinetwin.registration.icp import ICPConfig
+
+        return ICPConfig(
+            variant="point_to_plane",
+            schedule=((0.0, self.coarse_radius), (0.0, self.fine_radius)),
+            max_correspondence_distance=self.max_correspondence,
+            coarse_tolerance=0.0,  # measured without the early hand-on (docs/reconstruct.md)
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReconstructConfig:
+    """How frames become a mesh."""
+
+    poses: Literal["kinematics", "colmap", "odometry"] = "kinematics"
+    """Pose source: the capture's robot kinematics, pycolmap structure-from-motion on the colour
+    frames (metric scale from the depth), or depth odometry (frame-to-frame ICP; needs a
+    video-like capture)."""
+    voxel: float = TSDF_VOXEL
+    """TSDF voxel size (m); the truncation is `fusion.TRUNCATION_VOXELS` of them."""
+    depth_max: float = FUSED_DEPTH_MAX
+    """Farthest depth fused (m); the nearest is the camera's own minimum."""
+    target_triangles: int = 0
+    """Decimate the mesh to at most this many triangles (0: keep)."""
+    odometry: Annotated[OdometryConfig, CLI_OWN_GROUP] = field(default_factory=OdometryConfig)
+    """With `poses` odometry: its perception and ICP schedule (on the command line
+    `--odometry.NAME`)."""
