@@ -551,7 +551,7 @@ def test_mujoco_culling_fused_readback_and_own_draw_leave_the_image_unchanged(
         drawn.append(mj.drawn)
         assert own.drawn == mj.drawn
     mj._fused = None
-    monkeypatch.setattr(backends, "frustum_hits", lambda c, *a: np.ones(len(c)))
+    monkeypatch.setattr(backends.mujoco_gl, "frustum_hits", lambda c, *a: np.ones(len(c)))
     for T, a, c in zip(poses, culled, ours, strict=True):
         b = mj.render(T)
         assert (b > 0).sum() > 10_000

@@ -1,9 +1,11 @@
 """vinetwin: reference-cloud authoring and digital-twin toolkit for robotic vine pruning.
 
-The pipeline stages are subpackages: `twin` (the twin folder, camera, vines), `render`
-(synthetic D405 depth and reference clouds), `reconstruct` (frames to a mesh), `servo`
-(ICP and PBVS), `web` (the authoring app). The core modules `frames`, `conventions`,
-`camera` and `cloud` are shared by all of them. `import vinetwin` stays light: heavy
+The pipeline stages are subpackages (docs/architecture.md): `twin` (the twin folder, pruning
+poses, vines), `capture` (frames and camera sources), `registration` (ICP and the wide search),
+`render` (synthetic D405 depth and a pose's reference cloud), `reconstruct` (frames to a mesh),
+`servo` (PBVS, the loop, the robot, a servo session), `sim` (the simulated session, campaigns,
+validation) and `web` (the authoring app). The core modules `frames`, `conventions`, `camera`
+and `cloud` are shared by all of them. `import vinetwin` stays light: heavy
 libraries (open3d, pyrender, mujoco, viser, pycolmap) load only in the modules that use them.
 """
 

@@ -32,11 +32,8 @@ import numpy as np
 
 import vinetwin
 from vinetwin.camera import CameraModel, d405
-from vinetwin.cloud import ICP_VARIANTS, PerceptionConfig
-from vinetwin.errors import (
-    InputError,
-    TwinError,
-)
+from vinetwin.cloud import ICP_VARIANTS, MAX_DECIMATION, OUTLIER_RULES, PerceptionConfig
+from vinetwin.errors import CameraError, InputError, TwinError, TwinVersionError
 from vinetwin.files import (
     atomic_write_bytes,
     atomic_write_text,
@@ -51,18 +48,22 @@ from vinetwin.twin.poses import (
     pruning_pose,
 )
 from vinetwin.twin.skeleton import Skeleton
+from vinetwin.twin.store import (
+    ID_RE,
+    TWIN_FILE,
+    FieldReader,
+    read_saved,
+    read_twin_file,
+    write_twin_json,
+)
 
 if TYPE_CHECKING:
     import trimesh
-
-    from vinetwin.twin.store import FieldReader
 
 log = logging.getLogger(__name__)
 
 FORMAT_NAME = "vinetwin-twin"
 FORMAT_VERSION = 1
-TWIN_FILE = "twin.json"
-ID_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
 
 
 def check_id(value: Any, what: str = "id") -> str:
@@ -181,6 +182,24 @@ class PruningPose:
         )
 
 
+_TOP_KEYS = {
+    "format",
+    "format_version",
+    "units",
+    "name",
+    "mesh",
+    "skeleton",
+    "T_world_vine",
+    "camera",
+    "T_flange_camera",
+    "cut_points",
+    "pruning_poses",
+    "perception",
+    "provenance",
+    "revision",
+}
+
+
 # ----------------------------------------------------------------------------- the twin
 @dataclass
 class Twin:
@@ -254,9 +273,7 @@ class Twin:
         if skeleton is not None:
             twin.skeleton_file = "skeleton.json"
             atomic_write_text(root / "skeleton.json", json.dumps(skeleton.to_json()))
-        from vinetwin.twin.store import read_saved
-
-        old = read_saved(root) if overwrite else None
+        old = read_saved(root, twin._loader()) if overwrite else None
         twin.revision = int(old["revision"]) if old else 0  # replaced, not merged
         twin.provenance = {
             "created_by": f"vinetwin {vinetwin.__version__}",
@@ -273,19 +290,122 @@ class Twin:
     # ------------------------------------------------------------------ load / save
     @classmethod
     def load(cls, root: str | Path) -> Twin:
-        """Loads and validates a twin folder (the mesh is checked to exist, not read):
-        `twin.store.load_twin`."""
-        from vinetwin.twin.store import load_twin
-
-        return load_twin(root)
+        """Loads and validates a twin folder (the mesh is checked to exist, not read)."""
+        return cls.from_json(*read_twin_file(root))
 
     @classmethod
     def from_json(cls, root: Path, data: Any, path: Path | None = None) -> Twin:
         """The twin that twin.json's content `data` describes, validated (`TwinFieldError`
-        naming the field; `TwinVersionError` for a newer format): `twin.store.twin_from_json`."""
-        from vinetwin.twin.store import twin_from_json
+        naming the field and its bad value; `TwinVersionError` for a newer format)."""
+        f = FieldReader(path or root / TWIN_FILE)
+        data = f.obj(data, "(top level)")
+        fmt = f.string(data, "format", "")
+        if fmt != FORMAT_NAME:
+            raise f.fail("format", f"must be '{FORMAT_NAME}', got {fmt!r}")
+        version = data.get("format_version")
+        if isinstance(version, bool) or not isinstance(version, int):
+            raise f.fail("format_version", f"must be an integer, got {version!r}")
+        if version > FORMAT_VERSION:
+            raise TwinVersionError(
+                f"{f.path}: written by format version {version}, but this vinetwin "
+                f"({vinetwin.__version__}) reads versions up to {FORMAT_VERSION}; upgrade vinetwin"
+            )
+        if version < 1:
+            raise f.fail("format_version", f"must be >= 1, got {version}")
+        units = f.string(data, "units", "", default="m")
+        if units != "m":
+            raise f.fail("units", f"must be 'm' (metres), got {units!r}")
+        mesh_file = f.string(data, "mesh", "")
+        if Path(mesh_file).is_absolute() or ".." in Path(mesh_file).parts:
+            raise f.fail("mesh", f"must be a file name inside the twin folder, got {mesh_file!r}")
+        if not (root / mesh_file).exists():
+            raise f.fail("mesh", f"file '{mesh_file}' does not exist in {root}")
+        skel = data.get("skeleton")
+        if skel is not None and (
+            not isinstance(skel, str)
+            or Path(skel).is_absolute()
+            or ".." in Path(skel).parts
+            or not (root / skel).exists()
+        ):
+            raise f.fail("skeleton", f"must name a file in the twin folder, got {skel!r}")
+        revision = data.get("revision", 0)
+        if isinstance(revision, bool) or not isinstance(revision, int) or revision < 0:
+            raise f.fail("revision", f"must be an integer >= 0, got {revision!r}")
 
-        return twin_from_json(root, data, path)
+        cam_data = f.obj(f.req(data, "camera", ""), "camera")
+        for key in ("width", "height"):
+            v = f.req(cam_data, key, "camera.")
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise f.fail(f"camera.{key}", f"must be a positive integer, got {v!r}")
+        for key in ("fx", "fy", "cx", "cy"):
+            f.number(cam_data, key, "camera.")
+        for key in ("min_depth", "max_depth", "depth_unit", "baseline", "subpixel"):
+            if key in cam_data:
+                f.number(cam_data, key, "camera.")
+        try:
+            camera = CameraModel.from_dict(cam_data)
+        except (CameraError, TypeError) as exc:
+            raise f.fail("camera", str(exc)) from exc
+
+        perc_data = f.obj(data.get("perception", {}), "perception")
+        for key, val in perc_data.items():
+            if key == "outlier_rule":
+                if val not in OUTLIER_RULES:
+                    raise f.fail(
+                        "perception.outlier_rule",
+                        f"must be one of {', '.join(OUTLIER_RULES)}, got {val!r}",
+                    )
+            elif key == "decimation":
+                if (
+                    isinstance(val, bool)
+                    or not isinstance(val, int)
+                    or not 1 <= val <= MAX_DECIMATION
+                ):
+                    raise f.fail(
+                        "perception.decimation",
+                        f"must be an integer 1-{MAX_DECIMATION}, got {val!r}",
+                    )
+            elif key in {fl for fl in PerceptionConfig.__dataclass_fields__}:
+                f.number(perc_data, key, "perception.")
+                if val < 0:
+                    raise f.fail(f"perception.{key}", f"must be >= 0, got {val}")
+
+        cut_points = [
+            CutPoint.from_json(c, f, f"cut_points[{i}]")
+            for i, c in enumerate(f.seq(data, "cut_points"))
+        ]
+        poses = [
+            PruningPose.from_json(p, f, f"pruning_poses[{i}]")
+            for i, p in enumerate(f.seq(data, "pruning_poses"))
+        ]
+        f.unique([c.id for c in cut_points], "cut_points")
+        f.unique([p.id for p in poses], "pruning_poses")
+        cut_ids = {c.id for c in cut_points}
+        for i, p in enumerate(poses):
+            if p.cut_point not in cut_ids:
+                raise f.fail(
+                    f"pruning_poses[{i}].cut_point", f"names no cut point: {p.cut_point!r}"
+                )
+        prov = data.get("provenance", {})
+        if not isinstance(prov, dict):
+            raise f.fail("provenance", "must be an object")
+        twin = cls(
+            root=root,
+            revision=revision,
+            name=f.string(data, "name", "", default=root.name),
+            mesh_file=mesh_file,
+            skeleton_file=skel,
+            T_world_vine=f.pose(data, "T_world_vine", ""),
+            camera=camera,
+            T_flange_camera=f.pose(data, "T_flange_camera", ""),
+            cut_points=cut_points,
+            poses=poses,
+            perception=PerceptionConfig.from_dict(perc_data),
+            provenance=prov,
+            extra={k: v for k, v in data.items() if k not in _TOP_KEYS},
+        )
+        twin._base = twin.to_json()
+        return twin
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -316,9 +436,28 @@ class Twin:
         two different changes of one field raise `TwinConflictError` naming it, and nothing is
         written. The content is validated first (ids, references between entities): a twin
         that would not load again is not saved."""
-        from vinetwin.twin.store import save_twin
+        if not self.root.is_dir():
+            raise TwinError(f"{self.root}: twin folder does not exist")
+        ours = self.to_json()
+        path = self.json_path
+        type(self).from_json(self.root, ours, path)  # refuse what would not load
+        merged, fresh = write_twin_json(
+            path,
+            ours,
+            self._base,
+            self.revision,
+            lambda d: type(self).from_json(self.root, d, path),
+        )
+        if fresh is not None:
+            self.__dict__.update(fresh.__dict__)
+        else:
+            self.revision = merged["revision"]
+        self._base = self.to_json()
 
-        save_twin(self)
+    def _loader(self) -> Callable[[Any], Twin]:
+        """twin.json's content to a twin of this folder (what the store merges with)."""
+        root, path, cls = self.root, self.json_path, type(self)
+        return lambda data: cls.from_json(root, data, path)
 
     def restored(self, data: dict[str, Any]) -> Twin:
         """A copy holding `data` (an earlier `to_json` of this twin: an undo) as an edit of

@@ -1,7 +1,7 @@
-"""The twin's store: twin.json read and validated (`load_twin`, `twin_from_json`, every error
-naming its field and bad value; a newer format refused), written atomically one revision up
-(`save_twin`), and concurrent saves merged entity by entity under a lock (`merge_twin_json`).
-The entities themselves and their edits are in `twin.model`."""
+"""The twin's store, below the entities (`twin.model`, which imports it): twin.json read
+(`read_twin_file`) and its fields checked (`FieldReader`: every error names the field and its
+bad value), written atomically one revision up under the folder's lock (`write_twin_json`), and
+concurrent saves merged entity by entity (`merge_twin_json`)."""
 
 from __future__ import annotations
 
@@ -10,34 +10,28 @@ import json
 import logging
 import math
 import os
-from collections.abc import Iterator
+import re
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-import vinetwin
-from vinetwin.camera import CameraModel
-from vinetwin.cloud import MAX_DECIMATION, OUTLIER_RULES, PerceptionConfig
 from vinetwin.errors import (
-    CameraError,
     InputError,
     TwinConflictError,
     TwinError,
     TwinFieldError,
-    TwinVersionError,
 )
 from vinetwin.files import atomic_write_text, parse_json, remove_orphan_temp_files
 from vinetwin.frames import Array, check_pose, unit_vector
-from vinetwin.twin.model import (
-    FORMAT_NAME,
-    FORMAT_VERSION,
-    ID_RE,
-    TWIN_FILE,
-    CutPoint,
-    PruningPose,
-    Twin,
-)
+
+#: The twin folder's description file.
+TWIN_FILE = "twin.json"
+#: The entry names twin.json's ids must match: safe as file names.
+ID_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -129,26 +123,9 @@ class FieldReader:
         return arr
 
 
-_TOP_KEYS = {
-    "format",
-    "format_version",
-    "units",
-    "name",
-    "mesh",
-    "skeleton",
-    "T_world_vine",
-    "camera",
-    "T_flange_camera",
-    "cut_points",
-    "pruning_poses",
-    "perception",
-    "provenance",
-    "revision",
-}
-
-
-def load_twin(root: str | Path) -> Twin:
-    """Loads and validates a twin folder (the mesh is checked to exist, not read)."""
+def read_twin_file(root: str | Path) -> tuple[Path, Any, Path]:
+    """The twin folder, twin.json's parsed content (not yet validated: `Twin.from_json` does)
+    and its path; TwinError naming what is wrong when it cannot be read or parsed."""
     root = Path(root)
     path = root / TWIN_FILE
     if root.is_file() and root.name == TWIN_FILE:
@@ -168,139 +145,36 @@ def load_twin(root: str | Path) -> Twin:
         ) from exc
     except ValueError as exc:  # a number too long, nesting too deep
         raise TwinError(f"{path}: cannot read it: {exc}") from None
-    return twin_from_json(root, data, path)
+    return root, data, path
 
 
-def twin_from_json(root: Path, data: Any, path: Path | None = None) -> Twin:
-    f = FieldReader(path or root / TWIN_FILE)
-    data = f.obj(data, "(top level)")
-    fmt = f.string(data, "format", "")
-    if fmt != FORMAT_NAME:
-        raise f.fail("format", f"must be '{FORMAT_NAME}', got {fmt!r}")
-    version = data.get("format_version")
-    if isinstance(version, bool) or not isinstance(version, int):
-        raise f.fail("format_version", f"must be an integer, got {version!r}")
-    if version > FORMAT_VERSION:
-        raise TwinVersionError(
-            f"{f.path}: written by format version {version}, but this vinetwin "
-            f"({vinetwin.__version__}) reads versions up to {FORMAT_VERSION}; upgrade vinetwin"
-        )
-    if version < 1:
-        raise f.fail("format_version", f"must be >= 1, got {version}")
-    units = f.string(data, "units", "", default="m")
-    if units != "m":
-        raise f.fail("units", f"must be 'm' (metres), got {units!r}")
-    mesh_file = f.string(data, "mesh", "")
-    if Path(mesh_file).is_absolute() or ".." in Path(mesh_file).parts:
-        raise f.fail("mesh", f"must be a file name inside the twin folder, got {mesh_file!r}")
-    if not (root / mesh_file).exists():
-        raise f.fail("mesh", f"file '{mesh_file}' does not exist in {root}")
-    skel = data.get("skeleton")
-    if skel is not None and (
-        not isinstance(skel, str)
-        or Path(skel).is_absolute()
-        or ".." in Path(skel).parts
-        or not (root / skel).exists()
-    ):
-        raise f.fail("skeleton", f"must name a file in the twin folder, got {skel!r}")
-    revision = data.get("revision", 0)
-    if isinstance(revision, bool) or not isinstance(revision, int) or revision < 0:
-        raise f.fail("revision", f"must be an integer >= 0, got {revision!r}")
-
-    cam_data = f.obj(f.req(data, "camera", ""), "camera")
-    for key in ("width", "height"):
-        v = f.req(cam_data, key, "camera.")
-        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-            raise f.fail(f"camera.{key}", f"must be a positive integer, got {v!r}")
-    for key in ("fx", "fy", "cx", "cy"):
-        f.number(cam_data, key, "camera.")
-    for key in ("min_depth", "max_depth", "depth_unit", "baseline", "subpixel"):
-        if key in cam_data:
-            f.number(cam_data, key, "camera.")
-    try:
-        camera = CameraModel.from_dict(cam_data)
-    except (CameraError, TypeError) as exc:
-        raise f.fail("camera", str(exc)) from exc
-
-    perc_data = f.obj(data.get("perception", {}), "perception")
-    for key, val in perc_data.items():
-        if key == "outlier_rule":
-            if val not in OUTLIER_RULES:
-                raise f.fail(
-                    "perception.outlier_rule",
-                    f"must be one of {', '.join(OUTLIER_RULES)}, got {val!r}",
-                )
-        elif key == "decimation":
-            if isinstance(val, bool) or not isinstance(val, int) or not 1 <= val <= MAX_DECIMATION:
-                raise f.fail(
-                    "perception.decimation",
-                    f"must be an integer 1-{MAX_DECIMATION}, got {val!r}",
-                )
-        elif key in {fl for fl in PerceptionConfig.__dataclass_fields__}:
-            f.number(perc_data, key, "perception.")
-            if val < 0:
-                raise f.fail(f"perception.{key}", f"must be >= 0, got {val}")
-
-    cut_points = [
-        CutPoint.from_json(c, f, f"cut_points[{i}]")
-        for i, c in enumerate(f.seq(data, "cut_points"))
-    ]
-    poses = [
-        PruningPose.from_json(p, f, f"pruning_poses[{i}]")
-        for i, p in enumerate(f.seq(data, "pruning_poses"))
-    ]
-    f.unique([c.id for c in cut_points], "cut_points")
-    f.unique([p.id for p in poses], "pruning_poses")
-    cut_ids = {c.id for c in cut_points}
-    for i, p in enumerate(poses):
-        if p.cut_point not in cut_ids:
-            raise f.fail(f"pruning_poses[{i}].cut_point", f"names no cut point: {p.cut_point!r}")
-    prov = data.get("provenance", {})
-    if not isinstance(prov, dict):
-        raise f.fail("provenance", "must be an object")
-    twin = Twin(
-        root=root,
-        revision=revision,
-        name=f.string(data, "name", "", default=root.name),
-        mesh_file=mesh_file,
-        skeleton_file=skel,
-        T_world_vine=f.pose(data, "T_world_vine", ""),
-        camera=camera,
-        T_flange_camera=f.pose(data, "T_flange_camera", ""),
-        cut_points=cut_points,
-        poses=poses,
-        perception=PerceptionConfig.from_dict(perc_data),
-        provenance=prov,
-        extra={k: v for k, v in data.items() if k not in _TOP_KEYS},
-    )
-    twin._base = twin.to_json()
-    return twin
-
-
-def save_twin(twin: Twin) -> None:
-    """`Twin.save`: see there."""
-    if not twin.root.is_dir():
-        raise TwinError(f"{twin.root}: twin folder does not exist")
-    ours = twin.to_json()
-    twin_from_json(twin.root, ours, twin.json_path)  # refuse what would not load
-    remove_orphan_temp_files(twin.root)
-    with _save_lock(twin.root):
-        theirs = read_saved(twin.root)
+def write_twin_json(
+    json_path: Path,
+    ours: dict[str, Any],
+    base: dict[str, Any] | None,
+    revision: int,
+    load: Callable[[Any], T],
+) -> tuple[dict[str, Any], T | None]:
+    """Writes `ours` (twin.json's content, this copy's `revision`, read as `base`) atomically,
+    one revision up, under the folder's lock. When another writer saved since `base` was read,
+    the two are merged against `base` (`merge_twin_json`) and the merge must `load` (twin.json's
+    content to a twin; a twin that would not load is not written). Returns what was written and,
+    after a merge, the merged twin (None when nothing was merged)."""
+    root = json_path.parent
+    remove_orphan_temp_files(root)
+    with _save_lock(root):
+        theirs = read_saved(root, load)
         merged, fresh = ours, None
-        if theirs is not None and theirs.get("revision") != twin.revision:
-            merged = merge_twin_json(twin._base or {}, ours, theirs, str(twin.json_path))
-        merged["revision"] = max(twin.revision, int((theirs or {}).get("revision", 0))) + 1
+        if theirs is not None and theirs.get("revision") != revision:
+            merged = merge_twin_json(base or {}, ours, theirs, str(json_path))
+        merged["revision"] = max(revision, int((theirs or {}).get("revision", 0))) + 1
         if merged is not ours:  # the merge must still be a twin
-            fresh = twin_from_json(twin.root, merged, twin.json_path)
+            fresh = load(merged)
         try:
-            atomic_write_text(twin.json_path, json.dumps(merged, indent=1) + "\n")
+            atomic_write_text(json_path, json.dumps(merged, indent=1) + "\n")
         except OSError as exc:
-            raise TwinError(f"{twin.json_path}: cannot save: {exc}") from exc
-    if fresh is not None:
-        twin.__dict__.update(fresh.__dict__)
-    else:
-        twin.revision = merged["revision"]
-    twin._base = twin.to_json()
+            raise TwinError(f"{json_path}: cannot save: {exc}") from exc
+    return merged, fresh
 
 
 # ----------------------------------------------------------------------------- concurrent saves
@@ -325,13 +199,14 @@ def _save_lock(root: Path) -> Iterator[None]:
         os.close(fd)
 
 
-def read_saved(root: Path) -> dict[str, Any] | None:
-    """twin.json as saved now, normalised like `Twin.to_json`; None when there is none or it
-    cannot be read (nothing to merge with: it is replaced)."""
+def read_saved(root: Path, load: Callable[[Any], Any]) -> dict[str, Any] | None:
+    """twin.json as saved now, normalised by `load` (its content to a twin, whose `to_json` is
+    taken); None when there is none or it cannot be read (nothing to merge with: it is
+    replaced)."""
     if not (root / TWIN_FILE).exists():
         return None
     try:
-        return Twin.load(root).to_json()
+        return load(read_twin_file(root)[1]).to_json()
     except TwinError as exc:
         log.warning("%s: replacing a twin.json that does not load: %s", root, exc)
         return None
