@@ -14,7 +14,11 @@ VARIANTS = ("point_to_point", "point_to_plane", "symmetric", "lm")
 
 
 def main() -> None:
-    runs = [json.loads(Path(p).read_text()) for p in sys.argv[1:]]
+    print_icp([json.loads(Path(p).read_text()) for p in sys.argv[1:]])
+
+
+def print_icp(runs: list[dict]) -> None:
+    """The two tables of `benchmarks/icp.py` runs (one per vine)."""
     print("ICP time / fastest peer's (same objective, same clouds, same levels; LM: / our "
           "point-to-plane); median translation error ours / the peer's (mm); where the run "
           "records each case's error, the median of the paired differences with its 95% "

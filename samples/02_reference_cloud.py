@@ -17,8 +17,7 @@ import numpy as np
 from vinetwin.errors import BackendUnavailable
 from vinetwin.render.backends import BACKENDS, get_backend
 from vinetwin.render.preview import save_preview
-from vinetwin.render.reference import render_reference
-from vinetwin.render.sensor import SensorConfig
+from vinetwin.render.reference import reference_for
 from vinetwin.twin import Twin
 
 SAMPLE = Path(__file__).resolve().parent / "vine_bilateral.twin"
@@ -41,9 +40,9 @@ def main() -> None:
             continue
         depths[name] = backend.render(pose.T_vine_camera)
         if name == "open3d":
-            ref = render_reference(
-                backend, pose.T_vine_camera, twin.perception, SensorConfig(), seed=0
-            )
+            # the pose's reference, as every part of vinetwin gets it (here rendered now, with
+            # this backend, rather than read from the twin's exported files)
+            ref = reference_for(twin, pose.id, use_exported=False, renderer=backend)
             print(
                 f"reference of {pose.id}: {len(ref.cloud)} points, depth {ref.cloud.points[:, 2].min():.3f}-{ref.cloud.points[:, 2].max():.3f} m"
             )

@@ -119,6 +119,21 @@ def test_icp_tables_read_the_benchmark_json(tmp_path: Path) -> None:
     assert proc.stdout.count("| tracking |") == 2 * len(files)
 
 
+def test_the_speed_page_is_what_the_results_files_hold() -> None:
+    """`benchmarks/tables.py` prints the current tables from the committed results, one file
+    per benchmark and vine, each with its machine and commit; `docs/results/speed.md` holds that
+    output (the tables are regenerated with the files, not edited by hand)."""
+    results = ROOT / "benchmarks" / "results"
+    proc = _run("tables.py", timeout=120)
+    for name in ("icp", "render", "web"):
+        assert f"`{name}.json`: " in proc.stdout and "commit " in proc.stdout
+    page = (ROOT / "docs" / "results" / "speed.md").read_text()
+    for table_line in [ln for ln in proc.stdout.splitlines() if ln.startswith("| ")]:
+        assert table_line in page, table_line
+    names = {p.name for p in results.glob("*.json")}
+    assert not {n for n in names if n.startswith(("web_clock", "web_display", "web_llvmpipe"))}
+
+
 def test_web_benchmark_quick(tmp_path: Path) -> None:
     """`benchmarks/web.py` clicks the sample in headless Chromium and writes each part of the
     click-to-preview time (figures printed, never asserted)."""

@@ -85,14 +85,14 @@ def test_adjust_snap_undo_redo_delete(twin_dir: Path) -> None:
 def test_unwritable_and_invalid_twins_are_reported(
     twin_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import vinetwin.twin.model as model
+    import vinetwin.twin.store as store
 
     sess = AuthoringSession(twin_dir)
 
     def refuse(path: Path, text: str) -> None:
         raise PermissionError(13, "Permission denied", str(path))
 
-    monkeypatch.setattr(model, "atomic_write_text", refuse)
+    monkeypatch.setattr(store, "atomic_write_text", refuse)
     origin, direction, _ = ray_at(sess._require())
     assert sess.click(origin, direction) is not None  # the edit stays in the page
     assert "not saved" in sess.problem and "Permission denied" in sess.problem
