@@ -61,7 +61,8 @@ class ReferenceCheck:
             f"{self.pose}: {self.verdict.upper()}: {self.reason}\n"
             f"correction {self.correction_mm:.2f} mm, {self.correction_rad:.4f} rad; residual "
             f"{self.residual_mm:.2f} mm; overlap {self.overlap:.2f}; the live view covers "
-            f"{100 * self.coverage:.0f}% of the reference ({len(self.frames)} frames)"
+            f"{100 * self.coverage:.0f}% of the reference ({len(self.frames)} frames, "
+            f"{self.variant or 'ICP'})"
         )
 
 
