@@ -144,7 +144,7 @@ def run(
     from playwright.sync_api import TimeoutError as PlaywrightTimeout
     from playwright.sync_api import sync_playwright
 
-    from vinetwin.web.app import serve
+    from vinetwin.web.server import serve
 
     port = _free_port()
     app = serve(twin_dir, port=port, config=config)

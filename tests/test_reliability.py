@@ -234,7 +234,7 @@ def test_atomic_writes_honour_the_umask_and_keep_a_files_mode(twin_dir: Path) ->
 def test_the_web_app_warns_when_it_listens_beyond_loopback(
     twin_dir: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from vinetwin.web.app import serve
+    from vinetwin.web.server import serve
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

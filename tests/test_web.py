@@ -115,7 +115,7 @@ def test_page_sends_only_what_changed(twin_dir: Path) -> None:
     page, undo brings it back. The gizmo and the preview's point cloud are moved and refilled,
     never sent again (the page would compile their shaders again), and the preview's shader
     keeper stays."""
-    from vinetwin.web.app import serve
+    from vinetwin.web.server import serve
 
     app = serve(twin_dir, port=_free_port())
     try:
@@ -181,6 +181,7 @@ def test_page_draws_the_vine_within_its_triangle_budget(
     from vinetwin.web import app as web_app
     from vinetwin.web.config import WebConfig
     from vinetwin.web.display import quick_display_mesh
+    from vinetwin.web.server import serve
 
     def off_surface(app: web_app.App) -> np.ndarray:
         """Distances of the drawn mesh's vertices to the full mesh."""
@@ -190,7 +191,7 @@ def test_page_draws_the_vine_within_its_triangle_budget(
         scene.add_triangles(sess.vertices.astype(np.float32), sess.faces.astype(np.uint32))
         return scene.compute_distance(app.vine_mesh[0].astype(np.float32)).numpy()
 
-    app = web_app.serve(twin_dir, port=_free_port(), config=WebConfig(display_faces=20_000))
+    app = serve(twin_dir, port=_free_port(), config=WebConfig(display_faces=20_000))
     try:
         assert app.wait_ready()
         assert app.vine_display == "decimated" and 19_000 <= app.vine_faces <= 20_000
@@ -203,7 +204,7 @@ def test_page_draws_the_vine_within_its_triangle_budget(
         app.close()
 
     monkeypatch.setattr(web_app, "SYNC_DECIMATION_FACES", 1000)
-    app = web_app.serve(twin_dir, port=_free_port(), config=WebConfig(display_faces=20_000))
+    app = serve(twin_dir, port=_free_port(), config=WebConfig(display_faces=20_000))
     try:
         first = app.vine_display
         assert app.wait_ready()
@@ -212,7 +213,7 @@ def test_page_draws_the_vine_within_its_triangle_budget(
     finally:
         app.close()
 
-    app = web_app.serve(twin_dir, port=_free_port(), config=WebConfig(display_faces=0))
+    app = serve(twin_dir, port=_free_port(), config=WebConfig(display_faces=0))
     try:
         assert app.vine_display == "full" and app.vine_faces == len(app.session.faces)
     finally:
@@ -233,7 +234,7 @@ def test_status_says_while_the_preview_warms_up(
     waits; once it is done, it no longer says so."""
     import threading
 
-    from vinetwin.web import app as web_app
+    from vinetwin.web.server import serve
     from vinetwin.web.session import AuthoringSession
 
     release = threading.Event()
@@ -244,7 +245,7 @@ def test_status_says_while_the_preview_warms_up(
         return preview(self, pose_id)
 
     monkeypatch.setattr(AuthoringSession, "preview", slow_preview)
-    app = web_app.serve(twin_dir, port=_free_port())
+    app = serve(twin_dir, port=_free_port())
     try:
         for _ in range(200):  # the warm-up thread takes the lock and says so
             if "Preparing the camera preview" in app.status.content:
@@ -265,8 +266,8 @@ def test_shading_setting_reaches_the_page(twin_dir: Path) -> None:
     """`WebConfig.shading`: "fast" draws the vine toon-shaded without shadows, "full" physically
     based with shadows; anything else is refused by name."""
     from vinetwin.errors import InputError
-    from vinetwin.web.app import serve
     from vinetwin.web.config import Shading, WebConfig
+    from vinetwin.web.server import serve
 
     shadings: tuple[tuple[Shading, str, bool], ...] = (
         ("fast", "toon3", False),
@@ -315,7 +316,7 @@ def test_browser_draws_webgl_as_asked() -> None:
 def test_browser_click_creates_a_cut_point(twin_dir: Path, tmp_path: Path) -> None:
     from playwright.sync_api import sync_playwright
 
-    from vinetwin.web.app import serve
+    from vinetwin.web.server import serve
 
     port = _free_port()
     app = serve(twin_dir, port=port)
@@ -361,7 +362,7 @@ def test_browser_click_creates_a_cut_point(twin_dir: Path, tmp_path: Path) -> No
 def test_app_reports_a_broken_twin_and_validates_a_pose(twin_dir: Path, tmp_path: Path) -> None:
     """Without a browser: an invalid twin.json shows in the page's status and the server runs;
     the validate button's work runs the simulated servo to the selected pose."""
-    from vinetwin.web.app import serve
+    from vinetwin.web.server import serve
 
     broken = tmp_path / "broken.twin"
     shutil.copytree(twin_dir, broken)

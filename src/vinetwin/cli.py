@@ -393,7 +393,7 @@ class Web:
     config: Annotated[WebConfig, Nested] = field(default_factory=WebConfig)
 
     def run(self) -> None:
-        from vinetwin.web.app import serve_folder
+        from vinetwin.web.server import serve_folder
 
         serve_folder(self.twin, self.host, self.port, forever=True, config=self.config)
 

@@ -2,12 +2,12 @@
 
 The page shows the vine mesh, its skeleton and cut-point candidates (when the twin has them),
 world axes and a ground grid, the cut points and a camera frustum per pruning pose. A click on
-the mesh places a cut point at the hit and proposes its pruning pose 0.15 m away; the side panel
+the mesh places a cut point at the hit and proposes its pruning pose `DEFAULT_STANDOFF` away; the side panel
 adjusts the selected pose (standoff, approach azimuth and elevation, roll, ICP variant, name),
 snaps its optical axis back onto the cut point, deletes it, undoes and redoes, previews the
 reference cloud (coloured by depth) and the D405 depth image, and exports the references.
 Every edit is saved to twin.json at once (`AuthoringSession`); errors show in the page and the
-log, and the server keeps running.
+log, and the server keeps running. `web.server` starts it (`serve`, `serve_folder`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import numpy as np
 
 from vinetwin.cloud import ICP_VARIANTS
 from vinetwin.conventions import viser_wxyz_position
-from vinetwin.errors import InputError, VinetwinError
+from vinetwin.errors import VinetwinError
 from vinetwin.twin.poses import DEFAULT_STANDOFF, STANDOFF_RANGE, Approach
 from vinetwin.web.config import WebConfig
 from vinetwin.web.session import AuthoringSession
@@ -630,71 +630,3 @@ class App:
             + (f". **Stopped: {sm['lost']}**" if sm["lost"] else "")
             + "."
         )
-
-
-def serve(
-    root: str | Path, host: str = "127.0.0.1", port: int = 8080, config: WebConfig | None = None
-) -> App:
-    """Starts the app (returns at once; the server runs in its own threads). Any host but a
-    loopback address exposes the editor, which has no authentication, to the network: that is
-    allowed, with a warning."""
-    if host not in ("127.0.0.1", "localhost", "::1"):
-        log.warning(
-            "listening on %s: anyone who can reach this machine on port %d can edit and save %s "
-            "(the app has no authentication); use --host 127.0.0.1 unless the network is yours",
-            host, port, root,
-        )  # fmt: skip
-    _check_port(host, port)
-    app = App(root, host, port, config)
-    if app.server.get_port() != port:  # taken between the check and the start: viser moved on
-        app.close()
-        raise InputError(f"port {port} on {host} is in use; choose another with --port")
-    log.info("vinetwin web on http://%s:%d  (twin %s)", host, port, root)
-    return app
-
-
-def _check_port(host: str, port: int) -> None:
-    """Refuses, by name, a port out of range or in use: viser would quietly move to the next
-    free port while the command printed the asked one (another service's page)."""
-    import socket
-
-    if not 1 <= port <= 65535:
-        raise InputError(f"--port must lie in 1-65535, got {port}")
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except (OSError, UnicodeError) as exc:
-        raise InputError(f"--host {host}: cannot resolve it ({exc})") from None
-    family, _, _, _, address = infos[0]
-    with socket.socket(family, socket.SOCK_STREAM) as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as servers bind
-        try:
-            sock.bind(address)
-        except OSError as exc:
-            raise InputError(
-                f"cannot listen on {host}:{port}: {exc.strerror or exc} (in use? choose another "
-                "with --port)"
-            ) from None
-
-
-def serve_folder(
-    root: str | Path | None,
-    host: str = "127.0.0.1",
-    port: int = 8080,
-    forever: bool = False,
-    config: WebConfig | None = None,
-) -> App:
-    """`vinetwin web`: serves the twin at `root`, or, without one, a copy of the bundled sample
-    in out/web (made once, then edited in place); with `forever`, until interrupted."""
-    if root is None:
-        from vinetwin.twin.model import copy_bundled_sample
-
-        root = copy_bundled_sample(Path("out") / "web")
-        log.info("no twin given: editing a copy of the bundled sample in %s", root)
-    app = serve(root, host, port, config)
-    if forever:
-        import time
-
-        print(f"vinetwin web: open http://{host}:{port} (Ctrl-C stops)", flush=True)
-        while True:
-            time.sleep(3600)
-    return app
