@@ -248,3 +248,33 @@ def test_the_reference_is_read_or_rendered_once_by_its_owner(tmp_path: Path) -> 
     ply.write_bytes(ply.read_bytes()[:-12])
     with pytest.raises(InputError, match="does not match the hash"):
         refmod.reference_for(twin, "p1")
+
+
+def test_an_exported_reference_of_a_moved_pose_is_refused(tmp_path: Path) -> None:
+    """A reference exported before the pose moved (or the twin's settings changed) is the view
+    of where the pose was: the servo would go there. `reference_for` refuses it, naming why,
+    until the export is run again."""
+    from dataclasses import replace
+
+    from vinetwin.errors import InputError
+    from vinetwin.frames import make_pose
+    from vinetwin.render.export import export_references
+    from vinetwin.render.reference import reference_for
+    from vinetwin.twin.model import Twin
+
+    root = _sample_copy(tmp_path)
+    twin = Twin.load(root)
+    assert export_references(twin, ["p1", "p2"], workers=1).ok
+    assert reference_for(twin, "p1").exported
+    twin.set_pose("p1", twin.pose("p1").T_vine_camera @ make_pose(t=[0.0, 0.002, 0.0]))
+    twin.save()
+    twin = Twin.load(root)
+    with pytest.raises(InputError, match="pose p1 moved since its reference was exported"):
+        reference_for(twin, "p1")
+    assert reference_for(twin, "p2").exported  # the others are still current
+    twin.perception = replace(twin.perception, voxel_size=0.003)
+    twin.save()
+    with pytest.raises(InputError, match="perception settings changed"):
+        reference_for(Twin.load(root), "p2")
+    assert export_references(Twin.load(root), ["p1", "p2"], workers=1).ok
+    assert reference_for(Twin.load(root), "p1").exported

@@ -98,7 +98,9 @@ def reference_for(
     """The reference of one pose of a twin, with its cut point in the reference camera frame.
 
     `use_exported`: the twin's exported `references/POSE.ply` when there is one (refused, naming
-    why, when its files do not match the hashes its sidecar recorded); else the pose rendered
+    why, when its files do not match the hashes its sidecar recorded, or when it was exported
+    for another pose or other settings than the twin's now: `stale_reference`); else the pose
+    rendered
     now with the twin's settings and the export's noise seed (`pose_seed(seed, pose_id)`), as
     `vinetwin export` would. `dense`: also the dense cloud, from the same render (an exported
     reference is rendered once for it). `renderer`: render with it (kept open; for example a
@@ -110,7 +112,7 @@ def reference_for(
     path = twin.references_dir / f"{pose.id}.ply"
     cloud = None
     if use_exported and path.exists():
-        problem = check_reference_files(twin.references_dir, pose.id)
+        problem = check_reference_files(twin.references_dir, pose.id) or stale_reference(twin, pose)
         if problem:
             raise InputError(f"refusing reference {path}: {problem}; run `vinetwin export` again")
         cloud = read_reference_cloud(path)
@@ -198,6 +200,35 @@ def reference_files(cloud: Cloud) -> dict[str, bytes]:
         f"WIDTH {len(cloud)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(cloud)}\nDATA binary\n"
     )
     return {"ply": ply.encode("ascii") + body, "pcd": pcd.encode("ascii") + body}
+
+
+def stale_reference(twin: Twin, pose: Any) -> str:
+    """Why the pose's exported reference is not the one an export would make now ("" when it
+    is): the pose moved, or the mesh, camera or perception settings changed since the export
+    (its sidecar's inputs digest, made with the sidecar's own sensor model, backend and seed).
+    A servo to a stale reference would move the robot to where the pose was."""
+    sidecar = references_store(twin.references_dir).read(pose.id) or {}
+    try:
+        sensor = SensorConfig.from_dict(sidecar["sensor"])
+        common = digest_inputs(
+            file_sha256(twin.mesh_path), twin.camera, twin.perception, sensor, sidecar["backend"]
+        )
+        current = pose_digest(common, pose.T_vine_camera, int(sidecar["noise_seed"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        return f"its sidecar does not say what it was exported from ({exc})"
+    if current == sidecar.get("inputs_sha256"):
+        return ""
+    then = np.asarray(sidecar.get("T_vine_camera", np.zeros((4, 4))), float)
+    if then.shape != (4, 4) or not np.allclose(then, pose.T_vine_camera, atol=1e-9):
+        return f"pose {pose.id} moved since its reference was exported"
+    if sidecar.get("mesh_sha256") != common["mesh"]:
+        return "the twin's mesh changed since the reference was exported"
+    if (
+        sidecar.get("camera") != common["camera"]
+        or sidecar.get("perception") != common["perception"]
+    ):
+        return "the twin's camera or perception settings changed since the reference was exported"
+    return "its inputs changed since it was exported"
 
 
 def read_reference_cloud(path: Path) -> Cloud:
