@@ -40,12 +40,19 @@ def per_vine(benchmark: str, title: str) -> list[dict[str, Any]]:
     return [d for _, d in files]
 
 
+def one_file(benchmark: str, title: str) -> dict[str, Any] | None:
+    """The benchmark's one file (every vine in it), after a heading and its provenance."""
+    data = _load(f"{benchmark}.json")
+    print(f"\n## {title} (`benchmarks/{benchmark}.py`)\n")
+    if data is not None:
+        print(f"- {provenance(f'{benchmark}.json', data)}\n")
+    return data
+
+
 def main() -> None:
     print_icp(per_vine("icp", "ICP and the servo cycle"))
 
-    print("\n## Perception (`benchmarks/perception.py`)\n")
-    if (per := _load("perception.json")) is not None:
-        print(f"- {provenance('perception.json', per)}\n")
+    if (per := one_file("perception", "Perception")) is not None:
         print("| vine | voxel | rule | ours ms | Open3D ms | ours / Open3D | points |")
         print("|---|---|---|---|---|---|---|")
         for t in per["tables"]:
@@ -70,9 +77,7 @@ def main() -> None:
             print(f"| {d['twin']} | {e['backend']} | {e['workers']} | {e['seconds']:.1f} | "
                   f"{e['rerun_seconds']:.2f} |")  # fmt: skip
 
-    print("\n## Closed-loop simulation (`benchmarks/sim.py`)\n")
-    if (sim := _load("sim.json")) is not None:
-        print(f"- {provenance('sim.json', sim)}\n")
+    if (sim := one_file("sim", "Closed-loop simulation")) is not None:
         print("| vine | faces | backend | x real time | ms per frame | render ms | servo step ms |")
         print("|---|---|---|---|---|---|---|")
         for r in sim["rows"]:

@@ -22,21 +22,6 @@ def json_default(x: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
-def _cli_suppress() -> object:
-    """tyro's `conf.Suppress`, or a plain object where tyro is not installed (the library does
-    not need it)."""
-    try:
-        import tyro
-    except ImportError:  # pragma: no cover - tyro is a dependency of the command line
-        return object()
-    return tyro.conf.Suppress
-
-
-#: A settings group the command line sets as a group of its own (`--arrival-settings.NAME`),
-#: not among the flattened options of the config that carries it, where its names would clash.
-CLI_OWN_GROUP = _cli_suppress()
-
-
 class JsonFields:
     """Mixin for dataclasses stored in twin.json and reference sidecars."""
 

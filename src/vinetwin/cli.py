@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -238,9 +238,9 @@ class ServoCmd:
         from vinetwin.sim.session import servo_session
         from vinetwin.twin.model import Twin
 
-        cfg = replace(self.config, arrival_settings=self.arrival_settings)
         outputs = RunOutputs(self.log, self.record, self.mcap, self.overwrite)
-        summary, path = run_pose(Twin.load(self.twin), cfg, outputs, servo_session)
+        summary, path = run_pose(Twin.load(self.twin), self.config, outputs, servo_session,
+                                 self.arrival_settings)  # fmt: skip
         print(f"{summary.describe()}\nlog: {path}")
 
 
@@ -374,9 +374,8 @@ class Reconstruct:
         from vinetwin.reconstruct.pipeline import reconstruct
 
         refuse_existing_json(self.json, self.overwrite)
-        cfg = replace(self.config, odometry=self.odometry)
         with_progress("fusing frames", lambda progress: reconstruct(
-            self.capture, self.twin, cfg, overwrite=self.overwrite,
+            self.capture, self.twin, self.config, self.odometry, overwrite=self.overwrite,
             ground_truth=self.ground_truth, progress=progress, json_path=self.json))  # fmt: skip
 
 

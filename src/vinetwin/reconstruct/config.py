@@ -4,10 +4,10 @@ reconstruct` runs (`ReconstructConfig`). Light to import: the command line reads
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Annotated, Literal
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
 
-from vinetwin._config import CLI_OWN_GROUP, JsonFields, check_finite
+from vinetwin._config import JsonFields, check_finite
 from vinetwin.cloud import PerceptionConfig
 from vinetwin.errors import InputError
 
@@ -52,8 +52,8 @@ class OdometryConfig(JsonFields):
     """Depth odometry's perception and ICP schedule (`odometry_poses`): frame-to-frame
     point-to-plane ICP on clouds coarser than the servo's, over the sweep's range."""
 
-    max_depth: float = 0.5
-    """Farthest depth used (m), as the fusion's."""
+    max_depth: float = FUSED_DEPTH_MAX
+    """Farthest depth used (m): the fusion's."""
     voxel: float = 0.003
     """Voxel of the frames' clouds (m)."""
     coarse_radius: float = 0.05
@@ -100,6 +100,3 @@ class ReconstructConfig:
     """Farthest depth fused (m); the nearest is the camera's own minimum."""
     target_triangles: int = 0
     """Decimate the mesh to at most this many triangles (0: keep)."""
-    odometry: Annotated[OdometryConfig, CLI_OWN_GROUP] = field(default_factory=OdometryConfig)
-    """With `poses` odometry: its perception and ICP schedule (on the command line
-    `--odometry.NAME`)."""

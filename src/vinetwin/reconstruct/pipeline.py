@@ -15,7 +15,7 @@ from typing import Any
 
 from vinetwin.errors import TwinError
 from vinetwin.files import atomic_write_json
-from vinetwin.reconstruct.config import ReconstructConfig
+from vinetwin.reconstruct.config import OdometryConfig, ReconstructConfig
 
 log = logging.getLogger(__name__)
 
@@ -24,6 +24,7 @@ def reconstruct(
     capture: str | Path,
     twin: str | Path,
     config: ReconstructConfig | None = None,
+    odometry: OdometryConfig | None = None,
     *,
     overwrite: bool = False,
     ground_truth: str | Path | None = None,
@@ -33,7 +34,8 @@ def reconstruct(
     """Fuses the capture folder into a mesh in the twin folder `twin` (created; or, with
     `overwrite`, an existing twin's mesh replaced, its cut points and poses kept). With
     `ground_truth` (a twin folder or a mesh file) the mesh is scored: Chamfer distance and
-    F-scores under `report["evaluation"]`. Returns the report, also written to `json_path`."""
+    F-scores under `report["evaluation"]`. `odometry`: depth odometry's settings (with
+    `config.poses` odometry). Returns the report, also written to `json_path`."""
     import numpy as np
 
     from vinetwin.capture.folder import CaptureError, read_capture
@@ -55,7 +57,7 @@ def reconstruct(
         from vinetwin.reconstruct.odometry import MIN_RUN_FRAMES, odometry_poses
         from vinetwin.reconstruct.sfm import align_to
 
-        odo = odometry_poses(cap, cfg.odometry)
+        odo = odometry_poses(cap, odometry)
         run = odo.longest_run
         if len(run) < MIN_RUN_FRAMES:
             raise CaptureError(

@@ -442,13 +442,14 @@ def run_demo(out: Path) -> Path:
     from vinetwin.twin.summary import print_summary
 
     dst = copy_bundled_sample(out, replace=True)
-    print_summary(Twin.load(dst))
+    twin = Twin.load(dst)  # the export writes its references, not twin.json
+    print_summary(twin)
     report, where = with_progress(
         "exporting references", lambda progress: export_twins(dst, progress=progress)
     )
     print_report(report, where)
     check_export_ok(report)
-    first = Twin.load(dst).poses[0].id
-    preview_pose(Twin.load(dst), first, out / f"preview_{first}.png", overwrite=True)
+    first = twin.poses[0].id
+    preview_pose(twin, first, out / f"preview_{first}.png", overwrite=True)
     log.info("demo done: references and preview in %s", out)
     return dst

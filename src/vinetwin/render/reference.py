@@ -6,9 +6,11 @@ servo, the simulator, the web app, `preview` and `check-reference` all call it."
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -69,11 +71,19 @@ def render_reference(
     through the chain at a finer voxel (`dense_cloud`): one render either way. An empty view
     gives an empty cloud; the caller reports it (export in its report and log, preview in its
     log, the servo refuses it)."""
-    clean = backend.render(T_vine_camera)
-    depth = apply_d405_model(clean, backend.camera, np.random.default_rng(seed), sensor)
+    depth = render_depth(backend, T_vine_camera, sensor, seed)
     cloud = perceive(depth, backend.camera, perception, normals=True)
     fine = dense_cloud(depth, backend.camera, perception, DENSE_FACTOR) if dense else None
     return Reference(cloud, depth, seed, dense=fine)
+
+
+def render_depth(
+    backend: DepthBackend, T_vine_camera: Any, sensor: SensorConfig, seed: int
+) -> npt.NDArray[np.float32]:
+    """The D405's depth image at the pose: the render through the sensor model, its noise
+    drawn from `seed`."""
+    clean = backend.render(T_vine_camera)
+    return apply_d405_model(clean, backend.camera, np.random.default_rng(seed), sensor)
 
 
 def dense_cloud(
@@ -102,40 +112,56 @@ def reference_for(
     for another pose or other settings than the twin's now: `stale_reference`); else the pose
     rendered
     now with the twin's settings and the export's noise seed (`pose_seed(seed, pose_id)`), as
-    `vinetwin export` would. `dense`: also the dense cloud, from the same render (an exported
-    reference is rendered once for it). `renderer`: render with it (kept open; for example a
+    `vinetwin export` would. `dense`: also the dense cloud, from the same render (for an exported
+    reference, from one render of its depth: the sensor model and seed its sidecar names). `renderer`: render with it (kept open; for example a
     reconstructed twin's mesh, or a session's own renderer); default: the export's backend for
     one view, opened and closed here."""
     pose = twin.pose(pose_id)
     T = np.asarray(pose.T_vine_camera, float)
     cut = transform_points(invert(T), twin.cut_point(pose.cut_point).point[None])[0]
     path = twin.references_dir / f"{pose.id}.ply"
-    cloud = None
     if use_exported and path.exists():
         problem = check_reference_files(twin.references_dir, pose.id) or stale_reference(twin, pose)
         if problem:
             raise InputError(f"refusing reference {path}: {problem}; run `vinetwin export` again")
-        cloud = read_reference_cloud(path)
-        if not dense:
-            return Reference(cloud, None, pose_seed(seed, pose.id), cut=cut, exported=True)
-    elif use_exported:
-        log.warning("%s: not exported; rendering the reference with the twin's settings", path)
-    own = renderer is None
-    if renderer is None:
-        from vinetwin.render.backends import get_backend, resolve_backend
-
-        mesh = twin.load_mesh()
-        renderer = get_backend(resolve_backend(None), mesh.vertices, mesh.faces, twin.camera)
-    try:
-        rendered = render_reference(
-            renderer, T, twin.perception, SensorConfig(), pose_seed(seed, pose.id), dense
+        # current (`stale_reference`): its sidecar names the sensor model and the seed it used
+        sidecar = references_store(twin.references_dir).read(pose.id) or {}
+        exported = Reference(
+            read_reference_cloud(path), None, int(sidecar["noise_seed"]), cut=cut, exported=True
         )
-    finally:
-        if own:
-            renderer.close()
-    if cloud is not None:  # the exported cloud, with the dense one rendered for it
-        return replace(rendered, cloud=cloud, cut=cut, exported=True)
+        if not dense:
+            return exported
+        # the dense cloud from the depth the export rendered: its sensor model and seed
+        sensor = SensorConfig.from_dict(sidecar["sensor"])
+        with _renderer_for(twin, renderer) as r:
+            depth = render_depth(r, T, sensor, exported.seed)
+        return replace(
+            exported, dense=dense_cloud(depth, twin.camera, twin.perception, DENSE_FACTOR)
+        )
+    if use_exported:
+        log.warning("%s: not exported; rendering the reference with the twin's settings", path)
+    with _renderer_for(twin, renderer) as r:
+        rendered = render_reference(
+            r, T, twin.perception, SensorConfig(), pose_seed(seed, pose.id), dense
+        )
     return replace(rendered, cut=cut)
+
+
+@contextlib.contextmanager
+def _renderer_for(twin: Twin, renderer: DepthBackend | None) -> Iterator[DepthBackend]:
+    """`renderer` (kept open), or the export's backend for one view of the twin's mesh, opened
+    here and closed after."""
+    if renderer is not None:
+        yield renderer
+        return
+    from vinetwin.render.backends import get_backend, resolve_backend
+
+    mesh = twin.load_mesh()
+    own = get_backend(resolve_backend(None), mesh.vertices, mesh.faces, twin.camera)
+    try:
+        yield own
+    finally:
+        own.close()
 
 
 # ----------------------------------------------------------------------------- files

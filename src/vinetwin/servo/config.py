@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Annotated, Literal, get_args
+from typing import Literal, get_args
 
 from vinetwin._config import (
-    CLI_OWN_GROUP,
     JsonFields,
     check_at_most,
     check_counts,
@@ -416,9 +415,6 @@ class RunnerConfig(JsonFields):
     start from its answer instead of where the robot believes the vine is; a refusal (too
     little agreement, ambiguous) stops the run before any motion. Needs a robot pose (franka,
     the simulation, or a capture folder's recorded poses)."""
-    arrival_settings: Annotated[ArrivalConfig, CLI_OWN_GROUP] = field(default_factory=ArrivalConfig)
-    """The arrival registration's settings (with `arrival`; on the command line
-    `--arrival-settings.NAME`)."""
     profile: str = "ideal"
     """Simulation: error profile (ideal, field or a JSON file of the simulator's FieldProfile;
     see `vinetwin campaign --help`). Its twin source reconstructs the twin once (about a

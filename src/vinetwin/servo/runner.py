@@ -34,7 +34,7 @@ import numpy as np
 from vinetwin.errors import InputError
 from vinetwin.files import refuse_existing
 from vinetwin.frames import invert
-from vinetwin.servo.config import RunnerConfig
+from vinetwin.servo.config import ArrivalConfig, RunnerConfig
 from vinetwin.servo.loop import Cycle, CycleLog, LoopSummary, run_loop
 from vinetwin.servo.session import Session, hardware_session
 from vinetwin.twin.model import PruningPose, Twin
@@ -91,10 +91,13 @@ def run_pose(
     twin: Twin,
     cfg: RunnerConfig,
     outputs: RunOutputs | None = None,
-    simulator: Callable[[Twin, PruningPose, RunnerConfig], Session] | None = None,
+    simulator: Callable[[Twin, PruningPose, RunnerConfig, ArrivalConfig | None], Session]
+    | None = None,
+    arrival: ArrivalConfig | None = None,
 ) -> tuple[LoopSummary, Path]:
     """Servos to one pruning pose; returns the loop's summary and the log's path. The simulated
-    camera (`cfg.camera == "sim"`) needs `simulator`: `vinetwin.sim.session.servo_session`."""
+    camera (`cfg.camera == "sim"`) needs `simulator`: `vinetwin.sim.session.servo_session`.
+    `arrival`: the arrival registration's settings (with `cfg.arrival`)."""
     out = outputs or RunOutputs()
     log_path, record, mcap, overwrite = out.log, out.record, out.mcap, out.overwrite
     pose = twin.pose(cfg.pose) if cfg.pose else twin.poses[0]
@@ -113,9 +116,9 @@ def run_pose(
                 "the simulated camera needs the simulator: pass "
                 "simulator=vinetwin.sim.session.servo_session"
             )
-        session = simulator(twin, pose, cfg)
+        session = simulator(twin, pose, cfg, arrival)
     else:
-        session = hardware_session(twin, pose, cfg)
+        session = hardware_session(twin, pose, cfg, arrival)
     header: dict[str, Any] = {
         "twin": str(twin.root),
         "pose": pose.id,

@@ -82,8 +82,11 @@ def arrive(
     return result.T_vine_camera
 
 
-def hardware_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Session:
-    """A live, recorded or rendered camera with a Franka or no robot."""
+def hardware_session(
+    twin: Twin, pose: PruningPose, cfg: RunnerConfig, arrival: ArrivalConfig | None = None
+) -> Session:
+    """A live, recorded or rendered camera with a Franka or no robot; `arrival`: the arrival
+    registration's settings (with `cfg.arrival`; default `ArrivalConfig()`)."""
     from vinetwin.render.reference import reference_for
 
     robot_kind, _, host = cfg.robot.partition(":")
@@ -125,7 +128,7 @@ def hardware_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Sessio
             belief = None
             if robot is not None:
                 belief = invert(twin.T_world_vine) @ robot.T_base_camera()
-            T_vine_camera = arrive(source, twin, belief, config=cfg.arrival_settings)
+            T_vine_camera = arrive(source, twin, belief, config=arrival)
             servo.reset(invert(np.asarray(pose.T_vine_camera, float)) @ T_vine_camera)
     except BaseException:
         if robot is not None:

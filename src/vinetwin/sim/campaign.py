@@ -63,19 +63,11 @@ class _Job:
     def digest(self) -> str:
         """What this run's result depends on: the run, and the twin and reference meshes by
         their content (`mesh_sha256`), not their location."""
-        s = self.spec
         data = {
             "key": self.key,
             "group": self.group,
             "start_index": self.start_index,
-            "goal": np.asarray(s.goal, float).tolist(),
-            "start": np.asarray(s.start, float).tolist(),
-            "config": s.config.to_dict(),
-            "disturbance": s.disturbance.to_dict(),
-            "reference_seed": s.reference_seed,
-            "pose_id": s.pose_id,
-            "robot": s.robot,
-            "cut": None if s.cut is None else np.asarray(s.cut, float).tolist(),
+            "spec": self.spec.to_dict(),
             "context": {k: v for k, v in self.context.items() if k != "mesh_path"},
             "reference": {k: v for k, v in self.reference.items() if k != "mesh_path"},
             "format": CAMPAIGN_FORMAT,

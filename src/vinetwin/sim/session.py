@@ -15,7 +15,7 @@ a worker process turns into live objects, so a run is described once and built o
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,7 @@ from vinetwin.frames import Array, invert, make_pose, pose_error, so3_exp, trans
 from vinetwin.render.backends import DepthBackend
 from vinetwin.render.reference import Reference, reference_for, render_reference
 from vinetwin.render.sensor import SensorConfig
-from vinetwin.servo.config import CommandLimits, RunnerConfig
+from vinetwin.servo.config import ArrivalConfig, CommandLimits, RunnerConfig
 from vinetwin.servo.session import Session, arrive
 from vinetwin.servo.step import Servo, make_servo, wants_dense
 from vinetwin.sim.camera import SimCameraSource
@@ -146,6 +146,18 @@ class SimSpec:
     watchdog: float | None = None
     """The simulated arm's command watchdog (s; None: the limits' own)."""
 
+    def to_dict(self) -> dict[str, Any]:
+        """The run as plain data (its digest's input: a campaign's resumed runs)."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, SimConfig | Disturbance):
+                v = v.to_dict()
+            elif v is not None and f.name in ("goal", "start", "cut"):
+                v = np.asarray(v, float).tolist()
+            out[f.name] = v
+        return out
+
     def cut_point(self) -> Array:
         """The cut point (vine frame), or `DEFAULT_STANDOFF` along the goal camera's axis
         without one."""
@@ -238,11 +250,14 @@ def servo_spec(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> SimSpec:
     return SimSpec(goal, start, sim, pose.id, cut, robot=robot, watchdog=cfg.limits.watchdog)
 
 
-def servo_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Session:
+def servo_session(
+    twin: Twin, pose: PruningPose, cfg: RunnerConfig, arrival: ArrivalConfig | None = None
+) -> Session:
     """`vinetwin servo --camera sim`: the simulated D405 on a free-flying camera (`--robot sim`)
     or on the MuJoCo Panda (`--robot mujoco`), servoing to the twin's exported reference (or one
     rendered now; under the field profile's twin source, one rendered from a reconstructed twin
-    while the scene stays the true vine); with `cfg.arrival`, the arrival registration first."""
+    while the scene stays the true vine); with `cfg.arrival`, the arrival registration first
+    (`arrival`: its settings)."""
     from vinetwin.render.backends import scene_backend
 
     spec = servo_spec(twin, pose, cfg)
@@ -285,7 +300,7 @@ def servo_session(twin: Twin, pose: PruningPose, cfg: RunnerConfig) -> Session:
     if cfg.arrival:  # where the robot believes the camera is: its first guess, in the vine frame
         believed = goal @ sim.servo.initial_guess
         try:
-            T_vine_camera = arrive(sim.source, twin, believed, robot_mesh, cfg.arrival_settings)
+            T_vine_camera = arrive(sim.source, twin, believed, robot_mesh, arrival)
         except BaseException:
             sim.close()
             raise

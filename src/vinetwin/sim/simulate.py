@@ -179,7 +179,7 @@ def simulate(
             record, camera, camera.depth_unit, extra={"provenance": {"simulation": cfg.to_dict()}}
         )
     at_goal_since: list[float | None] = [None]
-    cut_at_goal = transform_points(invert(np.asarray(goal, float)), cut[None])[0]
+    cut_at_goal = rig.reference.cut  # the cut in the goal camera's frame
 
     def on_cycle(c: Cycle) -> dict[str, Any]:
         r, t = c.result, source.now()  # the frame's stamp, unless a fault made it late
