@@ -61,6 +61,11 @@ class ImportFormatError(VinetwinError):
     """A skeleton file (hydroshoot digit.input, cylinder list) cannot be parsed."""
 
 
+class ScanError(VinetwinError):
+    """A scan (point cloud or mesh file) cannot be read, or what it holds is not a plant that
+    `import-scan` can make a twin of (empty, all NaN, a plane, a ball, a scale no plant has)."""
+
+
 class BackendUnavailable(VinetwinError):
     """A rendering backend cannot start here (no EGL, library missing); `reason` says why."""
 

@@ -1,0 +1,136 @@
+"""Skeleton and twin accuracy of `vinetwin import-scan` on simulated scans of plants whose truth
+is known: the bundled sample, a dense generated vine, two hydroshoot vines and two
+Tree-Models-Library trees (`../shared/data`), each scanned at the qualities of
+`scan.synthetic.QUALITY_LADDER`, written as a file in a scanner's frame (y up; vines in
+millimetres as photogrammetry writes them, trees in metres as LiDAR does), and
+imported with the command's own code (`import_scan`, units and up axis detected).
+
+    .venv/bin/python benchmarks/scan_accuracy.py [--plants sample dense ...] [--qualities realistic]
+        [--json benchmarks/results/scan_accuracy.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin.scan.config import ScanImportConfig
+from vinetwin.scan.evaluate import mesh_accuracy, skeleton_accuracy
+from vinetwin.scan.frame import transform_skeleton
+from vinetwin.scan.importer import import_scan
+from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
+from vinetwin.twin.skeleton import Skeleton, tube_mesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from results_file import machine  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+PLANTS = {
+    "sample": ("vine", None),
+    "dense": ("vine", None),
+    "gdc_can1": ("vine", DATA / "vines/hydroshoot/gdc_can1_grapevine/digit.input"),
+    "vsp_ww": ("vine", DATA / "vines/hydroshoot/vsp_ww_grapevine/digit.input"),
+    "apple_spindle": ("tree", DATA / "trees/tree-models-library/Apple_1_TallSpindle.txt"),
+    "apple_ytrellis": ("tree", DATA / "trees/tree-models-library/Apple_YTrellisL.txt"),
+    "nectarine": ("tree", DATA / "trees/tree-models-library/Nectarine_30_6_14_1.txt"),
+}
+
+
+def truth_skeleton(name: str) -> Skeleton:
+    from vinetwin.twin.generator import DENSE, VineParams, generate_vine
+    from vinetwin.twin.importers import load_skeleton
+
+    if name == "sample":
+        return generate_vine(0)
+    if name == "dense":
+        return generate_vine(5, VineParams(**DENSE))  # type: ignore[arg-type]
+    path = PLANTS[name][1]
+    assert path is not None
+    return load_skeleton(path)
+
+
+def write_ply(path: Path, points: np.ndarray) -> None:
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    o3d.io.write_point_cloud(str(path), pc, write_ascii=False)
+
+
+def run_one(name: str, quality: str, seed: int, work: Path, trellis: bool) -> dict[str, Any]:
+    plant, _ = PLANTS[name]
+    truth = truth_skeleton(name)
+    V, F = tube_mesh(truth, edge=0.003, caps="round")
+    q = QUALITY_LADDER[quality]
+    if trellis:
+        q = dataclasses.replace(q, trellis=True)
+    wire = float(truth.branches[0].points[-1][2]) if plant == "vine" else None
+    P, _ = simulate_scan(V, F, q, seed, wire_height=wire)
+    T_scan_vine = scanner_frame(seed)
+    # vines as photogrammetry writes them (millimetres), trees as LiDAR does (metres)
+    scale = 1000.0 if plant == "vine" else 1.0
+    P_scan = (P @ T_scan_vine[:3, :3].T + T_scan_vine[:3, 3]) * scale
+    f = work / f"{name}_{quality}_{seed}.ply"
+    write_ply(f, P_scan)
+    t0 = time.perf_counter()
+    twin, scan = import_scan(f, work / f"{name}_{quality}_{seed}.twin",
+                             ScanImportConfig(plant=plant), overwrite=True)  # fmt: skip
+    secs = time.perf_counter() - t0
+    T = scan.T_vine_scan @ T_scan_vine  # truth's vine frame -> ours
+    truth_here = transform_skeleton(truth_skeleton(name), T)
+    pts_ours = scan.points
+    acc = skeleton_accuracy(scan.skeleton, truth_here, plant, 0.07, scan_points=pts_ours)
+    from vinetwin.mesh import load_mesh_arrays
+
+    Vo, Fo = load_mesh_arrays(twin.mesh_path)
+    Vt = V @ T[:3, :3].T + T[:3, 3]
+    acc.chamfer_mm, acc.fscore_2mm = mesh_accuracy(Vo, Fo, Vt, F)
+    up_err = float(np.degrees(np.arccos(np.clip(T[2, 2], -1, 1))))
+    return {"plant": name, "quality": quality, "seed": seed, "points": len(P), "trellis": trellis,
+            "removed": {k: v for k, v in scan.counts().items() if k not in ("read", "kept")},
+            "seconds": round(secs, 2), "up_error_deg": round(up_err, 2), "units": scan.units,
+            "up_from": scan.up_from, **acc.to_dict()}  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--plants", nargs="*", default=list(PLANTS))
+    ap.add_argument("--qualities", nargs="*", default=list(QUALITY_LADDER))
+    ap.add_argument("--seeds", type=int, default=1)
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--trellis", action="store_true", help="scan the ground, a wire and posts too")
+    a = ap.parse_args()
+    rows = []
+    print("| plant | quality | points | s | up err ° | complete | precise | radius err mm | tips found/true (extra) | canes lost/seen | cuts found/true | Chamfer mm | F@2mm |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in a.plants:
+            for quality in a.qualities:
+                for seed in range(a.seeds):
+                    try:
+                        r = run_one(name, quality, seed, Path(tmp), a.trellis)
+                    except Exception as exc:  # a quality where the import breaks is a result
+                        r = {"plant": name, "quality": quality, "seed": seed, "error": str(exc)[:200]}
+                        print(f"| {name} | {quality} | failed: {r['error']} |")
+                        rows.append(r)
+                        continue
+                    rows.append(r)
+                    print(f"| {name} | {quality}{' +trellis' if a.trellis else ''} | {r['points']} | {r['seconds']:.1f} | {r['up_error_deg']:.1f} "
+                          f"| {r['completeness']:.1%} | {r['precision']:.1%} | {r['radius_error_mm']:.2f} "
+                          f"| {r['tips_found']}/{r['tips_true']} ({r['tips_extra']}) | {r['canes_lost']}/{r['canes_seen']} "
+                          f"| {r['candidates_found']}/{r['candidates_true']} ({r['candidates_ours']}) "
+                          f"| {r['chamfer_mm']:.2f} | {r['fscore_2mm']:.2f} |", flush=True)  # fmt: skip
+    if a.json:
+        a.json.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,168 @@
+"""Cut candidates on a skeleton whose buds are not known (a scan), and the plant's kinds.
+
+The rule follows the generator and the importers (a cane shortened to a two-bud spur), with the
+buds where an internode length puts them, and is defined on the plant's shape alone, not on how
+its branches happen to be split into polylines, so that it gives the same cuts on a scan's
+skeleton and on the true skeleton of the same plant:
+
+- **vine**: every tip (the free end of a cane or shoot) is followed back to the permanent wood
+  (the trunk or a cordon); the cut sits `FIRST_NODE + 1.3 * internode` (in a straight line) past where
+  that path leaves the wood's surface: 30% of the way from the second bud to the third, as the generator's
+  and hydroshoot's candidates, with the buds counted from the cordon. Counting from the cordon,
+  not from the cane's own base on its spur, is what a scan allows: two canes of one spur touch
+  for their first centimetres and a scan cannot tell where they part. On a vine with 2-5 cm
+  spurs the cut sits that much nearer the cordon than counting from the spur. Canes sharing
+  their base give one cut; paths too short for the cut get none;
+- **tree**: each tip is followed back to its **last fork** (where the plant branches), and the cut
+  sits `CANDIDATE_OFFSET` (3 cm, the cylinder importer's) past the parent's surface, heading back
+  each shoot.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vinetwin.frames import Array
+from vinetwin.scan.config import FIRST_NODE, PlantKind
+from vinetwin.twin.importers import CANDIDATE_OFFSET
+from vinetwin.twin.skeleton import BranchKind, CutCandidate, Skeleton
+
+_EPS = 1e-3  # m: a child starting this close to its parent's end continues it
+
+
+def _arc(points: Array) -> Array:
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+
+
+def _attachments(sk: Skeleton) -> tuple[list[list[float]], list[float]]:
+    """For each branch, the arc positions on it where children start; and each branch's
+    position on its parent."""
+    on: list[list[float]] = [[] for _ in sk.branches]
+    at: list[float] = [0.0] * len(sk.branches)
+    arcs = [_arc(b.points) for b in sk.branches]
+    for i, b in enumerate(sk.branches):
+        p = b.parent
+        if p < 0:
+            continue
+        pts = sk.branches[p].points
+        k = int(np.argmin(np.linalg.norm(pts - b.points[0], axis=1)))
+        at[i] = float(arcs[p][k])
+        on[p].append(at[i])
+    return on, at
+
+
+PERMANENT: tuple[BranchKind, ...] = ("trunk", "cordon")
+"""A vine's permanent wood: cuts are never proposed on it, and a cane's path is followed back
+to it."""
+
+
+def tip_paths(sk: Skeleton, back_to: str = "fork") -> list[tuple[Array, Array, float, int]]:
+    """Each tip's path back to its last fork (`back_to="fork"`) or to the permanent wood
+    (`"permanent"`: the trunk or a cordon): (points from there to the tip, starting on the
+    parent's axis; their radii; the radius of the wood it leaves; the tip's branch)."""
+    on, at = _attachments(sk)
+    arcs = [_arc(b.points) for b in sk.branches]
+    out = []
+    for i, b in enumerate(sk.branches):
+        L = arcs[i][-1]
+        if any(s >= L - _EPS for s in on[i]):
+            continue  # something grows from its end: not a tip
+        if back_to == "permanent" and (b.kind in PERMANENT or b.parent < 0):
+            continue
+        pieces_p, pieces_r = [], []
+        cur, pos = i, L
+        fork_r = 0.0
+        while True:
+            s = arcs[cur]
+            forks = [x for x in on[cur] if x < pos - _EPS] if back_to == "fork" else []
+            lo = max(forks) if forks else 0.0
+            keep = (s > lo) & (s <= pos + 1e-12)
+            pts = sk.branches[cur].points
+            rad = sk.branches[cur].radii
+            p_lo = np.array([np.interp(lo, s, pts[:, d]) for d in range(3)])
+            pieces_p.insert(0, np.vstack([p_lo, pts[keep]]))
+            pieces_r.insert(0, np.concatenate([[np.interp(lo, s, rad)], rad[keep]]))
+            if forks:
+                fork_r = float(np.interp(lo, s, rad))
+                break
+            par = sk.branches[cur].parent
+            if par < 0:
+                break
+            ppos = at[cur]
+            if back_to == "fork":
+                stop = not (ppos >= arcs[par][-1] - _EPS
+                            and sum(1 for x in on[par] if x >= arcs[par][-1] - _EPS) == 1)  # fmt: skip
+            else:
+                stop = sk.branches[par].kind in PERMANENT or sk.branches[par].parent < 0
+            if stop:  # the path starts where it leaves its parent, on the parent's axis
+                pp = sk.branches[par].points
+                fork_r = float(np.interp(ppos, arcs[par], sk.branches[par].radii))
+                axis_pt = np.array([np.interp(ppos, arcs[par], pp[:, d]) for d in range(3)])
+                pieces_p.insert(0, axis_pt[None, :])
+                pieces_r.insert(0, np.array([fork_r]))
+                break
+            cur, pos = par, ppos
+        P = np.vstack(pieces_p)
+        R = np.concatenate(pieces_r)
+        keep = np.ones(len(P), bool)
+        keep[1:] = np.linalg.norm(np.diff(P, axis=0), axis=1) > 1e-9
+        out.append((P[keep], R[keep], fork_r, i))
+    return out
+
+
+def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[CutCandidate]:
+    """The rule of the module's docstring on `sk`; ordered along the plant as its tips are.
+    Candidates within 1 cm of an earlier one (canes sharing their base) are one."""
+    vine = plant == "vine"
+    offset = FIRST_NODE + 1.3 * internode if vine else CANDIDATE_OFFSET
+    out: list[CutCandidate] = []
+    for P, R, fork_r, branch in tip_paths(sk, "permanent" if vine else "fork"):
+        if sk.branches[branch].parent < 0:
+            continue  # the trunk's own top
+        s = _arc(P)
+        want = fork_r + offset
+        # straight-line distance from the fork: a noisy centre line's wiggles lengthen its arc
+        reach = np.maximum.accumulate(np.linalg.norm(P - P[0], axis=1))
+        if reach[-1] < want + 0.02:
+            continue
+        k = int(np.searchsorted(reach, want))
+        f = (want - reach[k - 1]) / max(reach[k] - reach[k - 1], 1e-12)
+        point = P[k - 1] + f * (P[k] - P[k - 1])
+        want = s[k - 1] + f * (s[k] - s[k - 1])
+        if any(np.linalg.norm(c.point - point) < 0.01 for c in out):
+            continue
+        k = int(np.clip(np.searchsorted(s, want), 1, len(P) - 1))
+        lo, hi = max(k - 2, 0), min(k + 2, len(P) - 1)
+        axis = P[hi] - P[lo]
+        axis /= max(float(np.linalg.norm(axis)), 1e-12)
+        out.append(CutCandidate(point, axis, branch=branch, radius=float(np.interp(want, s, R)),
+                                label=f"{sk.branches[branch].label or branch}/cut"))  # fmt: skip
+    return out
+
+
+def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
+    """Names each branch's kind from its shape (in place): for a vine the root is the trunk,
+    long near-horizontal branches from the trunk are cordons, branches carrying others on a
+    cordon are spurs, free branches canes; for a tree the root is the trunk, the rest branches."""
+    children: list[list[int]] = [[] for _ in sk.branches]
+    for i, b in enumerate(sk.branches):
+        if b.parent >= 0:
+            children[b.parent].append(i)
+    for i, b in enumerate(sk.branches):
+        kind: BranchKind
+        if b.parent < 0:
+            kind = "trunk"
+        elif plant == "tree":
+            kind = "branch"
+        else:
+            d = np.diff(b.points, axis=0)
+            seg = np.linalg.norm(d, axis=1)
+            flat = float((np.abs(d @ up)).sum() / max(seg.sum(), 1e-9))
+            parent_kind = sk.branches[b.parent].kind
+            if parent_kind in ("trunk", "cordon") and b.length > 0.25 and flat < 0.5:
+                kind = "cordon"
+            elif children[i] and b.length < 0.12:
+                kind = "spur"
+            else:
+                kind = "cane"
+        b.kind = kind

@@ -1,0 +1,195 @@
+"""Cleaning a scan before its skeleton: stray points, the ground, trellis wires, posts.
+
+Each step returns a mask of the points it removes, so the importer can count them, report them
+and write them out to be looked at; each is switchable (`CleanConfig`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from vinetwin.frames import Array
+
+
+def statistical_strays(points: Array, neighbours: int, std: float) -> Array:
+    """(N,) True for points whose mean distance to their `neighbours` nearest is more than
+    `std` deviations above the scan's mean (Open3D's statistical outlier removal)."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    _, keep = pc.remove_statistical_outlier(nb_neighbors=neighbours, std_ratio=std)
+    mask = np.ones(len(points), bool)
+    mask[np.asarray(keep, dtype=np.int64)] = False
+    return mask
+
+
+@dataclass
+class Ground:
+    mask: Array
+    """(N,) True for the ground's points."""
+    normal: Array
+    """Unit normal, pointing to the plant's side."""
+    offset: float
+    """The plane is {p : normal . p = offset}."""
+
+
+def find_ground(points: Array, spacing: float, rng: np.random.Generator) -> Ground | None:
+    """A plane under the plant: at least 10% of the points within a threshold of it, spread
+    over at least half the scan's width, and 97% of the other points on one side of it. A
+    vertical canopy (a VSP vine's canes) has the plant on both sides and is not taken."""
+    import open3d as o3d
+
+    sample = points if len(points) <= 200_000 else points[rng.choice(len(points), 200_000, False)]
+    thr = float(np.clip(3 * spacing, 0.01, 0.05))
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
+    o3d.utility.random.seed(int(rng.integers(2**31)))
+    (a, b, c, d), inl = pc.segment_plane(distance_threshold=thr, ransac_n=3, num_iterations=1000)
+    n = np.array([a, b, c])
+    nn = float(np.linalg.norm(n))
+    if nn < 1e-9 or len(inl) < 0.1 * len(sample):
+        return None
+    n, off = n / nn, -d / nn
+    dist = points @ n - off
+    on = np.abs(dist) <= thr
+    rest = dist[~on]
+    if len(rest) < 100:
+        return None
+    above = float((rest > 0).mean())
+    if max(above, 1 - above) < 0.97:
+        return None
+    if above < 0.5:
+        n, off, dist = -n, -off, -dist
+    flat = points[on]
+    u = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    width = max(np.ptp(flat @ u), np.ptp(flat @ v))
+    other = points[~on]
+    scan_width = max(np.ptp(other @ u), np.ptp(other @ v), 1e-6)
+    if width < 0.5 * scan_width:
+        return None
+    # everything at or below the plane (plus the band) is ground
+    return Ground(dist <= thr, n, off)
+
+
+def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generator) -> Array:
+    """(N,) True for points of trellis wires: straight lines of points at least 1 m long within
+    10 degrees of horizontal, where nothing thicker than the wire surrounds them (where the
+    cordon lies on the wire, the cordon's points stay)."""
+    from vinetwin.scan.skeletonize import voxel_thin
+
+    mask = np.zeros(len(points), bool)
+    tol = float(np.clip(2 * spacing, 0.004, 0.02))
+    P, _ = voxel_thin(points, max(spacing, 0.005))
+    P = P[_horizontal_lines(P, up)]  # a wire is a few hundred of 100k points: look among these
+    for _ in range(8):  # wires found at most
+        live = P[~_near_any(P, points[mask], tol)] if mask.any() else P
+        if len(live) < 50:
+            break
+        line = _best_line(live, up, tol, rng)
+        if line is None:
+            break
+        c, t = line
+        d = points - c
+        along = d @ t
+        off = np.linalg.norm(d - along[:, None] * t, axis=1)
+        inl = off <= tol
+        if inl.sum() < 30:
+            break
+        s0 = np.floor(along / 0.05).astype(np.int64)
+        wide = off <= 0.03
+        thin_slice = np.zeros(0, bool)
+        lo = s0[wide].min()
+        n_in = np.bincount(s0[inl] - lo, minlength=s0[wide].max() - lo + 1)
+        n_wide = np.bincount(s0[wide] - lo, minlength=len(n_in))
+        thin_slice = (n_in > 0) & (n_wide <= 1.3 * n_in + 2)
+        if thin_slice.sum() * 0.05 < 0.8:
+            break
+        mask |= inl & thin_slice[np.clip(s0 - lo, 0, len(thin_slice) - 1)] & wide
+    return mask
+
+
+def _horizontal_lines(P: Array, up: Array, k: int = 12) -> Array:
+    """(N,) True where P's neighbourhood is a line (the largest of its spread's eigenvalues
+    over 90% of their sum) within 15 degrees of horizontal: where a wire can be."""
+    if len(P) < k + 1:
+        return np.zeros(len(P), bool)
+    _, idx = cKDTree(P).query(P, k=k)
+    Q = P[idx] - P[idx].mean(1, keepdims=True)
+    C = np.einsum("nki,nkj->nij", Q, Q)
+    ev, evec = np.linalg.eigh(C)
+    lin = ev[:, 2] / np.maximum(ev.sum(1), 1e-18)
+    horiz = np.abs(evec[:, :, 2] @ up) < np.sin(np.radians(15))
+    return (lin > 0.9) & horiz
+
+
+def _near_any(P: Array, Q: Array, r: float) -> Array:
+    if len(Q) == 0:
+        return np.zeros(len(P), bool)
+    d, _ = cKDTree(Q).query(P, k=1, distance_upper_bound=r)
+    return np.isfinite(d)
+
+
+def _best_line(P: Array, up: Array, tol: float, rng: np.random.Generator) -> tuple[Array, Array] | None:
+    """The horizontal line through two of P's points with the most points within `tol`,
+    spanning at least 1 m (RANSAC over 3000 pairs)."""
+    i = rng.integers(len(P), size=6000)
+    j = rng.integers(len(P), size=6000)
+    d = P[j] - P[i]
+    L = np.linalg.norm(d, axis=1)
+    ok = (L > 0.5) & (np.abs(d @ up) < math.sin(math.radians(10)) * np.maximum(L, 1e-9))
+    i, d, L = i[ok][:3000], d[ok][:3000], L[ok][:3000]
+    if len(i) == 0:
+        return None
+    t = d / L[:, None]
+    best, best_n = None, 0
+    sub = P if len(P) <= 20_000 else P[rng.choice(len(P), 20_000, False)]
+    for k0 in range(0, len(i), 200):
+        c = P[i[k0 : k0 + 200]]
+        tt = t[k0 : k0 + 200]
+        q = sub[None, :, :] - c[:, None, :]
+        a = np.einsum("mnk,mk->mn", q, tt)
+        off2 = np.einsum("mnk,mnk->mn", q, q) - a * a
+        inl = off2 <= tol * tol
+        counts = inl.sum(1)
+        m = int(np.argmax(counts))
+        if counts[m] > best_n:
+            span = np.ptp(a[m][inl[m]]) if counts[m] > 1 else 0.0
+            if span >= 1.0:
+                best, best_n = (c[m], tt[m]), int(counts[m])
+    return best
+
+
+def find_posts(points: Array, up: Array, voxel: float) -> Array:
+    """(N,) True for points of posts: pieces apart from the rest that are straight
+    (linearity > 0.9), at least 1 m long and within 15 degrees of vertical. The largest piece
+    that is not a post is the plant; when every large piece looks like a post, the largest
+    stays."""
+    from vinetwin.scan.skeletonize import voxel_thin
+
+    P, inv = voxel_thin(points, voxel)
+    pairs = cKDTree(P).query_pairs(2.5 * voxel, output_type="ndarray")
+    n = len(P)
+    g = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    ncomp, lab = csgraph.connected_components(g, directed=False)
+    sizes = np.bincount(lab, minlength=ncomp)
+    mask_v = np.zeros(n, bool)
+    posts = []
+    for c in np.flatnonzero(sizes >= 20):
+        Q = P[lab == c]
+        ev, evec = np.linalg.eigh(np.cov((Q - Q.mean(0)).T))
+        axis = evec[:, -1]
+        lin = (math.sqrt(max(ev[-1], 0)) - math.sqrt(max(ev[-2], 0))) / max(math.sqrt(ev[-1]), 1e-9)
+        length = float(np.ptp(Q @ axis))
+        if lin > 0.9 - 1e-9 and length >= 1.0 and abs(axis @ up) >= math.cos(math.radians(15)):
+            posts.append(int(c))
+    others = [c for c in np.flatnonzero(sizes >= 20) if c not in posts]
+    if posts and not others:
+        posts.remove(max(posts, key=lambda c: sizes[c]))
+    mask_v[np.isin(lab, posts)] = True
+    return mask_v[inv]

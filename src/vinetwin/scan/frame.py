@@ -1,0 +1,121 @@
+"""The vine frame of a scan (`docs/conventions.md`): origin at the trunk's foot, +Z up, +X along
+the row (the cordon's principal axis), +Y across it; `T_vine_scan` maps the scan's points (in
+metres) into it and is kept in the twin's provenance, so poses can be given back in the
+scanner's frame."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vinetwin.errors import InputError
+from vinetwin.frames import Array
+from vinetwin.twin.skeleton import Skeleton
+
+AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def axis_vector(name: str) -> Array:
+    """The unit vector of an axis name: x, y, z, -x, -y, -z."""
+    sign = -1.0 if name.startswith("-") else 1.0
+    key = name.lstrip("-+").lower()
+    if key not in AXES:
+        raise InputError(f"up axis must be one of x y z -x -y -z, got {name!r}")
+    v = np.zeros(3)
+    v[AXES[key]] = sign
+    return v
+
+
+#: A trunk's direction within this angle (degrees) of an axis of the file is taken as that
+#: axis: scanners and photogrammetry tools write z or y up, and a trunk leans a few degrees.
+SNAP_DEGREES = 30.0
+
+
+def guess_up(trunk: Array) -> tuple[Array, str]:
+    """The up direction of a scan without ground or `--up`: the trunk's direction found by the
+    skeleton, snapped to the file's nearest axis when within `SNAP_DEGREES`."""
+    best = max(("x", "y", "z", "-x", "-y", "-z"), key=lambda n: float(axis_vector(n) @ trunk))
+    v = axis_vector(best)
+    angle = float(np.degrees(np.arccos(np.clip(v @ trunk, -1, 1))))
+    if angle <= SNAP_DEGREES:
+        return v, f"the trunk's direction ({angle:.0f} degrees from {best}: {best} taken)"
+    return trunk, f"the trunk's direction ({angle:.0f} degrees from the nearest axis, {best})"
+
+
+def row_axis(sk: Skeleton, up: Array) -> Array:
+    """The row's direction: the principal axis of the skeleton's centre lines (length-weighted,
+    thick wood counted more) in the horizontal plane; its largest component made positive."""
+    pts, w = [], []
+    for b in sk.branches:
+        seg = np.linalg.norm(np.diff(b.points, axis=0), axis=1)
+        pts.append(0.5 * (b.points[1:] + b.points[:-1]))
+        w.append(seg * 0.5 * (b.radii[1:] + b.radii[:-1]))
+    P = np.concatenate(pts)
+    W = np.concatenate(w)
+    P = P - (P @ up)[:, None] * up
+    m = (W[:, None] * P).sum(0) / W.sum()
+    Q = P - m
+    C = (W[:, None] * Q).T @ Q
+    C -= np.outer(up, up) * np.trace(C)  # keep the search horizontal
+    x = np.linalg.eigh(C)[1][:, -1]
+    x = x - (x @ up) * up
+    x /= np.linalg.norm(x)
+    return x if x[np.argmax(np.abs(x))] > 0 else -x
+
+
+def vine_from_scan(up: Array, x: Array, origin: Array) -> Array:
+    """T_vine_scan for a unit up vector, a horizontal row direction and the trunk's foot (all
+    in the scan's frame, metres)."""
+    z = up / np.linalg.norm(up)
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z])
+    T[:3, 3] = -T[:3, :3] @ origin
+    return T
+
+
+def transform_skeleton(sk: Skeleton, T: Array) -> Skeleton:
+    """The skeleton with its points mapped by the 4x4 `T` (rigid), in place; returned."""
+    R, t = T[:3, :3], T[:3, 3]
+    for b in sk.branches:
+        b.points = b.points @ R.T + t
+    for c in sk.candidates:
+        c.point = R @ c.point + t
+        c.cane_axis = R @ c.cane_axis
+    return sk
+
+
+def split_trunk(sk: Skeleton, up: Array) -> None:
+    """Splits the root branch where it bends from vertical to horizontal (a cordon leaving the
+    trunk's head, which the skeleton followed as one chain); in place. Children past the bend
+    move to the new cordon. Branch order stays parents-first."""
+    if not sk.branches or sk.branches[0].parent >= 0:
+        return
+    b = sk.branches[0]
+    P = b.points
+    if len(P) < 6:
+        return
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    h = (P - P[0]) @ up
+    for k in range(2, len(P) - 2):
+        t = P[min(k + 3, len(P) - 1)] - P[max(k - 3, 0)]
+        t /= max(np.linalg.norm(t), 1e-9)
+        if abs(t @ up) < 0.64 and h[k] > 0.2 and s[-1] - s[k] >= 0.15:
+            break
+    else:
+        return
+    from vinetwin.twin.skeleton import Branch
+
+    cordon = Branch(P[k:], b.radii[k:], kind="cordon", parent=0, label="cordon")
+    sk.branches[0] = Branch(P[: k + 1], b.radii[: k + 1], kind="trunk", parent=-1, label="trunk")
+    sk.branches.insert(1, cordon)
+    for i, c in enumerate(sk.branches[2:], start=2):
+        if c.parent >= 1:
+            c.parent += 1
+        elif c.parent == 0:
+            j = int(np.argmin(np.linalg.norm(P - c.points[0], axis=1)))
+            c.parent = 1 if j > k else 0
+    for c in sk.candidates:
+        if c.branch >= 1:
+            c.branch += 1

@@ -1,0 +1,260 @@
+"""`vinetwin import-scan`: a scan of a plant becomes a twin with a skeleton and cut candidates.
+
+read (`read`) -> units -> strays, ground (`clean`) -> the up axis (given, the ground's normal, or
+the trunk's direction from a first skeleton) -> wires and posts -> the skeleton (`skeletonize`)
+-> the vine frame (`frame`) -> kinds and cut candidates (`candidates`) -> the mesh (tubes around
+the skeleton, or the scan's mesh) -> the twin. Nothing is written when any step refuses."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from vinetwin.errors import ScanError, TwinError
+from vinetwin.frames import Array
+from vinetwin.scan.candidates import cut_candidates, label_kinds
+from vinetwin.scan.clean import find_ground, find_posts, find_wires, statistical_strays
+from vinetwin.scan.config import UNIT_SCALE, ScanImportConfig
+from vinetwin.scan.frame import (
+    axis_vector,
+    guess_up,
+    row_axis,
+    split_trunk,
+    transform_skeleton,
+    vine_from_scan,
+)
+from vinetwin.scan.read import ScanData, detect_units, read_scan, sample_mesh_surface, spacing_and_extent
+from vinetwin.scan.skeletonize import SkeletonResult, skeletonize
+from vinetwin.twin.skeleton import Skeleton
+
+if TYPE_CHECKING:
+    from vinetwin.twin.model import Twin
+
+log = logging.getLogger(__name__)
+
+#: Labels of removed points, in the order the report lists them.
+REMOVED = ("stray", "ground", "wire", "post", "apart")
+
+
+@dataclass
+class ScanImport:
+    """What an import found, before anything is written."""
+
+    skeleton: Skeleton
+    """In the vine frame, with kinds and cut candidates."""
+    T_vine_scan: Array
+    """Maps the file's points, converted to metres (`units`), into the vine frame."""
+    units: str
+    unit_note: str
+    up_from: str
+    """How the up axis was found: given, ground, trunk."""
+    points: Array
+    """The plant's points kept, in the vine frame."""
+    removed: dict[str, Array] = field(default_factory=dict)
+    """Removed points by reason (vine frame)."""
+    read: int = 0
+    spacing: float = 0.0
+    result: SkeletonResult | None = None
+    notes: list[str] = field(default_factory=list)
+    mesh: tuple[Array, np.ndarray] | None = None
+    """The scan's own mesh in the vine frame (mesh files)."""
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def counts(self) -> dict[str, int]:
+        return {"read": self.read, "kept": len(self.points),
+                **{k: len(self.removed.get(k, ())) for k in REMOVED}}  # fmt: skip
+
+    def summary(self) -> dict[str, Any]:
+        """What the twin's provenance and the report keep of the import."""
+        r = self.result
+        return {
+            "units": self.units,
+            "units_note": self.unit_note,
+            "up_from": self.up_from,
+            "T_vine_scan": np.round(self.T_vine_scan, 9).tolist(),
+            "point_spacing_m": round(self.spacing, 6),
+            "counts": self.counts(),
+            "notes": self.notes,
+            "skeleton": {
+                "method": "geodesic level sets (vinetwin.scan.skeletonize)",
+                "voxel_m": round(r.voxel, 6) if r else None,
+                "bin_m": round(r.bin, 6) if r else None,
+                "bridges": r.bridges if r else 0,
+                "branches": len(self.skeleton.branches),
+                "candidates": len(self.skeleton.candidates),
+            },
+            "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
+        }
+
+
+def analyse_scan(
+    path: str | Path,
+    config: ScanImportConfig,
+    progress: Callable[[str], None] | None = None,
+) -> ScanImport:
+    """Every step of the import but writing: reads, cleans, finds the frame and the skeleton."""
+    t0 = time.perf_counter()
+    secs: dict[str, float] = {}
+
+    def step(name: str) -> None:
+        nonlocal t0
+        t = time.perf_counter()
+        secs[name] = t - t0
+        t0 = t
+        if progress:
+            progress(name)
+
+    rng = np.random.default_rng(0)
+    data: ScanData = read_scan(path, config.max_points)
+    notes = list(data.notes)
+    units, unit_note = detect_units(data.points, config.units, config.plant, rng)
+    scale = UNIT_SCALE[units]
+    pts = data.points * scale
+    mesh = None
+    if data.mesh is not None:
+        V, F = data.mesh
+        mesh = (V * scale, F)
+        pts = sample_mesh_surface(mesh[0], F, 0.003, rng)
+        notes.append(f"{len(pts)} points sampled on the mesh's surface, about 3 mm apart")
+    elif config.mesh == "scan":
+        raise ScanError(f"{path}: --mesh scan needs a mesh file; this is a point cloud")
+    step("read")
+    removed_scan: dict[str, Array] = {}
+    cl = config.clean
+    if cl.strays:
+        m = statistical_strays(pts, cl.outlier_neighbours, cl.outlier_std)
+        removed_scan["stray"], pts = pts[m], pts[~m]
+    spacing, _ = spacing_and_extent(pts, rng)
+    ground = find_ground(pts, spacing, rng) if cl.ground else None
+    up: Array | None = None
+    up_from = ""
+    if config.up != "auto":
+        up, up_from = axis_vector(config.up), f"given ({config.up})"
+    elif ground is not None:
+        up, up_from = ground.normal, "the ground plane's normal"
+    if ground is not None:
+        removed_scan["ground"], pts = pts[ground.mask], pts[~ground.mask]
+    step("clean")
+    if up is None:
+        trunk = skeletonize(pts, config.skeleton, spacing, None).up
+        assert trunk is not None
+        up, up_from = guess_up(trunk)
+    if cl.wires:
+        m = find_wires(pts, up, spacing, rng)
+        removed_scan["wire"], pts = pts[m], pts[~m]
+    if cl.posts:
+        m = find_posts(pts, up, max(spacing, 0.01))
+        removed_scan["post"], pts = pts[m], pts[~m]
+    if len(pts) < 100:
+        raise ScanError(f"{path}: nothing of a plant is left after cleaning ({len(pts)} points)")
+    step("wires and posts")
+    res = skeletonize(pts, config.skeleton, spacing, up)
+    removed_scan["apart"] = pts[res.stray_mask]
+    pts = pts[~res.stray_mask]
+    step("skeleton")
+    _check_plant(res.skeleton, float(np.ptp(pts @ up)), path)
+    sk = res.skeleton
+    foot = sk.branches[0].points[0].copy()
+    if ground is not None:  # the trunk's foot on the ground
+        foot = foot - (foot @ ground.normal - ground.offset) * ground.normal
+    x = row_axis(sk, up)
+    T = vine_from_scan(up, x, foot)
+    transform_skeleton(sk, T)
+    z = np.array([0.0, 0.0, 1.0])
+    if config.plant == "vine":
+        split_trunk(sk, z)
+    label_kinds(sk, z, config.plant)
+    cands = cut_candidates(sk, config.plant, config.internode)
+    sk.candidates = [c for c in cands if sk.branches[c.branch].kind not in ("trunk", "cordon")]
+    step("frame and candidates")
+
+    def to_vine(p: Array) -> Array:
+        return p @ T[:3, :3].T + T[:3, 3]
+
+    mesh_v = (to_vine(mesh[0]), mesh[1]) if mesh is not None else None
+    return ScanImport(
+        skeleton=sk, T_vine_scan=T, units=units, unit_note=unit_note,
+        up_from=up_from, points=to_vine(pts),
+        removed={k: to_vine(v) for k, v in removed_scan.items()}, read=data.read,
+        spacing=spacing, result=res, notes=notes, mesh=mesh_v, seconds=secs,
+    )  # fmt: skip
+
+
+def _check_plant(sk: Skeleton, height: float, path: str | Path) -> None:
+    """Refuses what is no plant: a skeleton with almost no length (a ball, a plane's blob)."""
+    total = sum(b.length for b in sk.branches)
+    if total < 0.1 or height < 0.05:
+        raise ScanError(
+            f"{path}: no plant found: the skeleton is {total:.3f} m long over a height of "
+            f"{height:.3f} m (a plane or a ball, not branches)"
+        )
+
+
+def import_scan(
+    path: str | Path,
+    out: str | Path,
+    config: ScanImportConfig | None = None,
+    *,
+    report: str | Path | None = None,
+    truth: str | Path | None = None,
+    overwrite: bool = False,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[Twin, ScanImport]:
+    """`vinetwin import-scan`: analyses the scan, then writes the twin (and the report when
+    `report` is a folder; with `truth`, a twin of the same plant, its accuracy too)."""
+    from vinetwin.twin.model import TWIN_FILE, twin_from_skeleton
+
+    config = config or ScanImportConfig()
+    out = Path(out)
+    if (out / TWIN_FILE).exists() and not overwrite:  # before minutes of work
+        raise TwinError(f"{out}: already holds a twin; pass --overwrite to replace it")
+    scan = analyse_scan(path, config, progress)
+    source = {"importer": "scan", "file": str(path), "format": Path(path).suffix.lower()[1:],
+              "plant": config.plant, "scan": scan.summary()}  # fmt: skip
+    if config.mesh == "scan":
+        twin = _twin_from_scan_mesh(out, scan, source, config, overwrite)
+    else:
+        twin = twin_from_skeleton(out, scan.skeleton, edge=config.edge, caps="round",
+                                  source=source, cut_points=config.cut_points,
+                                  overwrite=overwrite, progress=progress)  # fmt: skip
+    if report is not None:
+        from vinetwin.scan.report import write_report
+
+        write_report(Path(report), scan, twin, truth)
+    return twin, scan
+
+
+def _twin_from_scan_mesh(
+    out: Path, scan: ScanImport, source: dict[str, Any], config: ScanImportConfig, overwrite: bool
+) -> Twin:
+    from vinetwin.twin.model import Twin
+
+    assert scan.mesh is not None
+    V, F = scan.mesh
+    twin = Twin.create(out, V, F, skeleton=scan.skeleton, source=source, overwrite=overwrite)
+    cands = scan.skeleton.candidates
+    if config.cut_points and cands:
+        picks = np.unique(np.linspace(0, len(cands) - 1, min(config.cut_points, len(cands))).round().astype(int))
+        for i in picks:
+            c = cands[i]
+            cut = twin.add_cut_point(c.point, c.cane_axis, name=c.label, source="candidate")
+            twin.add_pose(cut.id)
+        twin.save()
+    return twin
+
+
+def scan_frame_pose(twin: Twin, T_vine_x: Array) -> Array:
+    """A pose in the twin's vine frame given back in the scanner's frame (metres):
+    T_scan_x = inv(T_vine_scan) @ T_vine_x; raises TwinError for a twin not made from a scan."""
+    src = twin.provenance.get("source", {})
+    try:
+        T = np.asarray(src["scan"]["T_vine_scan"], dtype=np.float64).reshape(4, 4)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise TwinError(f"{twin.root}: not imported from a scan (no T_vine_scan)") from exc
+    return np.linalg.inv(T) @ T_vine_x
