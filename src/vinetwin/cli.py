@@ -17,10 +17,12 @@ from vinetwin.errors import exit_status
 from vinetwin.executor import ClusterConfig
 from vinetwin.files import refuse_existing_json
 from vinetwin.progress import with_progress
-from vinetwin.reconstruct.config import OdometryConfig, ReconstructConfig
+from vinetwin.reconstruct.config import OdometryConfig, ReconstructConfig, SyntheticCaptureConfig
 from vinetwin.render.backends import BackendName
+from vinetwin.scan.config import ScanImportConfig
 from vinetwin.servo.config import ArrivalConfig, CheckConfig, RunnerConfig
 from vinetwin.sim.config import CampaignConfig, FidelityConfig, ValidateConfig
+from vinetwin.twin.generator import SampleConfig
 from vinetwin.web.config import WebConfig
 
 log = logging.getLogger("vinetwin")
@@ -36,26 +38,18 @@ class Sample:
 
     out: Path
     """Twin folder to create (e.g. vine7.twin)."""
-    seed: int = 0
-    """Random seed: the same seed gives the same vine."""
-    cordons: Literal[1, 2] = 2
-    """One cordon arm (unilateral) or two (bilateral)."""
-    edge: float = 0.002
-    """Target triangle edge length of the tube mesh, metres (smaller: denser mesh)."""
-    cut_points: int = 4
-    """How many cut-point candidates become cut points with a default pruning pose."""
+    config: Annotated[SampleConfig, Nested] = field(default_factory=SampleConfig)
     overwrite: bool = False
     """Replace a twin already in OUT."""
-    dense: bool = False
-    """Grow a dense vine (spurs twice as close, 2-4 canes each: the paper's Table 2 vines)."""
 
     def run(self) -> None:
         from vinetwin.twin.generator import sample_twin
         from vinetwin.twin.summary import print_summary
 
-        print_summary(sample_twin(self.out, self.seed, cordons=self.cordons, edge=self.edge,
-                                  cut_points=self.cut_points, overwrite=self.overwrite,
-                                  dense=self.dense))  # fmt: skip
+        c = self.config
+        print_summary(sample_twin(self.out, c.seed, cordons=c.cordons, edge=c.edge,
+                                  cut_points=c.cut_points, overwrite=self.overwrite,
+                                  dense=c.dense))  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -81,6 +75,32 @@ class ImportVine:
 
         print_summary(import_twin(self.file, self.out, self.format, edge=self.edge,
                                   cut_points=self.cut_points, overwrite=self.overwrite))  # fmt: skip
+
+
+@dataclass(frozen=True, kw_only=True)
+class ImportScan:
+    """Make a twin from a scan of a plant (point cloud: PCD PLY XYZ TXT CSV LAS LAZ E57; mesh: PLY
+    OBJ STL GLB): units, the vine frame, cleaning, a skeleton, cut candidates (docs/scans.md)."""
+
+    file: Annotated[Path, Positional]
+    """Scan file."""
+    out: Path
+    """Twin folder to create."""
+    config: Annotated[ScanImportConfig, Nested] = field(default_factory=ScanImportConfig)
+    report: Path | None = None
+    """Also write a report here: counts, removed points, the skeleton over the points."""
+    truth: Path | None = None
+    """A twin of the same plant in the same frame: its accuracy goes into the report."""
+    overwrite: bool = False
+    """Replace a twin already in OUT."""
+
+    def run(self) -> None:
+        from vinetwin.scan.importer import import_scan
+        from vinetwin.twin.summary import print_summary
+
+        print_summary(import_scan(self.file, self.out, self.config, report=self.report,
+                                  truth=self.truth, overwrite=self.overwrite,
+                                  progress=lambda step: log.info("import-scan: %s", step))[0])  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -312,25 +332,17 @@ class CaptureSynthetic:
     """Twin folder whose mesh is captured."""
     out: Path
     """Capture folder to write."""
-    frames: int = 120
-    """Number of frames."""
-    distance: float = 0.3
-    """Camera distance to the vine (m)."""
-    pose_noise: tuple[float, float] = (0.0, 0.0)
-    """Standard deviation of the error added to the recorded poses (m, rad)."""
-    trajectory: Literal["grid", "path", "poses"] = "grid"
-    """grid: viewpoints over the vine; path: a video-like sweep; poses: around the pruning poses."""
-    seed: int = 0
+    config: Annotated[SyntheticCaptureConfig, Nested] = field(default_factory=SyntheticCaptureConfig)
 
     def run(self) -> None:
         from vinetwin.reconstruct.synthetic import synthetic_capture
         from vinetwin.twin.model import Twin
 
-        twin = Twin.load(self.twin)
+        c = self.config
         path = with_progress("rendering frames", lambda progress: synthetic_capture(
-            twin, self.out, self.frames, self.distance, self.seed, self.pose_noise, progress,
-            self.trajectory))  # fmt: skip
-        log.info("capture: %s (%d frames)", path, self.frames)
+            Twin.load(self.twin), self.out, c.frames, c.distance, c.seed, c.pose_noise, progress,
+            c.trajectory))  # fmt: skip
+        log.info("capture: %s (%d frames)", path, c.frames)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -411,23 +423,12 @@ class Demo:
 
 
 COMMANDS: dict[str, type] = {
-    "sample": Sample,
-    "import-vine": ImportVine,
-    "info": Info,
-    "export": Export,
-    "preview": Preview,
-    "demo": Demo,
-    "campaign": Campaign,
-    "validate": Validate,
-    "web": Web,
-    "capture-synthetic": CaptureSynthetic,
-    "import-recording": ImportRecording,
-    "servo": ServoCmd,
-    "servo-plot": ServoPlot,
-    "check-reference": CheckReference,
-    "fidelity": Fidelity,
-    "reconstruct": Reconstruct,
-}
+    "sample": Sample, "import-vine": ImportVine, "import-scan": ImportScan, "info": Info,
+    "export": Export, "preview": Preview, "demo": Demo, "campaign": Campaign, "validate": Validate,
+    "web": Web, "capture-synthetic": CaptureSynthetic, "import-recording": ImportRecording,
+    "servo": ServoCmd, "servo-plot": ServoPlot, "check-reference": CheckReference,
+    "fidelity": Fidelity, "reconstruct": Reconstruct,
+}  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -100,3 +100,18 @@ class ReconstructConfig:
     """Farthest depth fused (m); the nearest is the camera's own minimum."""
     target_triangles: int = 0
     """Decimate the mesh to at most this many triangles (0: keep)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class SyntheticCaptureConfig:
+    """A synthetic capture of a twin (`vinetwin capture-synthetic`)."""
+
+    frames: int = 120
+    """Number of frames."""
+    distance: float = 0.3
+    """Camera distance to the vine (m)."""
+    pose_noise: tuple[float, float] = (0.0, 0.0)
+    """Standard deviation of the error added to the recorded poses (m, rad)."""
+    trajectory: Literal["grid", "path", "poses"] = "grid"
+    """grid: viewpoints over the vine; path: a video-like sweep; poses: around the pruning poses."""
+    seed: int = 0

@@ -148,16 +148,19 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
     for i, b in enumerate(sk.branches):
         if b.parent >= 0:
             children[b.parent].append(i)
-    for i, b in enumerate(sk.branches):
+    order = [i for i, b in enumerate(sk.branches) if b.parent < 0]
+    for i in order:  # parents before children, however the list is ordered
+        order.extend(children[i])
+    for i in order:
+        b = sk.branches[i]
         kind: BranchKind
         if b.parent < 0:
             kind = "trunk"
         elif plant == "tree":
             kind = "branch"
         else:
-            d = np.diff(b.points, axis=0)
-            seg = np.linalg.norm(d, axis=1)
-            flat = float((np.abs(d @ up)).sum() / max(seg.sum(), 1e-9))
+            Q = b.points - b.points.mean(0)
+            flat = abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up))  # |sin| of its slope
             parent_kind = sk.branches[b.parent].kind
             if parent_kind in ("trunk", "cordon") and b.length > 0.25 and flat < 0.5:
                 kind = "cordon"

@@ -96,8 +96,8 @@ class ScanImportConfig:
     up: UpAxis = "auto"
     """The scan's up axis; auto: the ground plane's normal, else the trunk's direction."""
     plant: PlantKind = "vine"
-    """vine: trunk, cordons, spurs and canes, candidates where a cane is shortened to a
-    two-bud spur; tree: branches, a candidate 3 cm up each lateral (the cylinder importer's)."""
+    """vine: trunk, cordons, spurs, canes; a cut candidate where each cane would be shortened to
+    a two-bud spur. tree: a trunk and branches; a candidate 3 cm up each shoot from its fork."""
     mesh: MeshSource = "tubes"
     """The twin's mesh: tubes around the skeleton, or the scan's own mesh (a mesh file only)."""
     edge: float = 0.003

@@ -119,3 +119,40 @@ def split_trunk(sk: Skeleton, up: Array) -> None:
     for c in sk.candidates:
         if c.branch >= 1:
             c.branch += 1
+
+
+def split_cordons(sk: Skeleton, up: Array) -> None:
+    """Splits each branch growing from the trunk that runs level for at least 15 cm (a cordon)
+    where it turns up or down by more than 40 degrees (where the skeleton followed the cordon
+    on into the cane of its last spur); in place. The rest becomes a branch of its own, hanging
+    from the cordon's end, appended (the order stays parents-first)."""
+    from vinetwin.twin.skeleton import Branch
+
+    roots = {i for i, b in enumerate(sk.branches) if b.parent < 0}
+    for i in range(len(sk.branches)):
+        b = sk.branches[i]
+        if b.parent not in roots:
+            continue
+        P = b.points
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+        k_split = None
+        for k in range(1, len(P) - 1):
+            t = P[min(k + 3, len(P) - 1)] - P[max(k - 3, 0)]
+            t /= max(np.linalg.norm(t), 1e-9)
+            if abs(t @ up) > 0.64:
+                if s[k] >= 0.15 and s[-1] - s[k] >= 0.05:
+                    k_split = k
+                break
+        if k_split is None:
+            continue
+        k = k_split
+        rest = Branch(P[k:], b.radii[k:], kind="cane", parent=i, label=f"{b.label}+")
+        sk.branches[i] = Branch(P[: k + 1], b.radii[: k + 1], kind=b.kind, parent=b.parent,
+                                label=b.label)  # fmt: skip
+        new = len(sk.branches)
+        sk.branches.append(rest)
+        for c in sk.branches[:new]:
+            if c.parent == i:
+                j = int(np.argmin(np.linalg.norm(P - c.points[0], axis=1)))
+                if j > k:
+                    c.parent = new

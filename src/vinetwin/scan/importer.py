@@ -25,6 +25,7 @@ from vinetwin.scan.frame import (
     axis_vector,
     guess_up,
     row_axis,
+    split_cordons,
     split_trunk,
     transform_skeleton,
     vine_from_scan,
@@ -169,6 +170,7 @@ def analyse_scan(
     z = np.array([0.0, 0.0, 1.0])
     if config.plant == "vine":
         split_trunk(sk, z)
+        split_cordons(sk, z)
     label_kinds(sk, z, config.plant)
     cands = cut_candidates(sk, config.plant, config.internode)
     sk.candidates = [c for c in cands if sk.branches[c.branch].kind not in ("trunk", "cordon")]

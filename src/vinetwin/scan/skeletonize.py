@@ -317,7 +317,79 @@ class _LevelTree:
             sk.branches.append(
                 Branch(pts, np.maximum(rad, 5e-4), kind="branch", parent=parent, label=f"b{ci}")
             )
-        return sk
+        return merge_slivers(sk)
+
+
+def _dist_to_polyline(Q: Array, P: Array) -> Array:
+    """Distance of each point of Q to the polyline P."""
+    if len(P) == 1:
+        return np.linalg.norm(Q - P[0], axis=1)
+    a, b = P[:-1], P[1:]
+    ab = b - a
+    den = np.maximum((ab * ab).sum(1), 1e-18)
+    t = np.clip(np.einsum("qsk,sk->qs", Q[:, None, :] - a[None], ab) / den, 0, 1)
+    proj = a[None] + t[..., None] * ab[None]
+    return np.linalg.norm(proj - Q[:, None, :], axis=2).min(1)
+
+
+def merge_slivers(sk: Skeleton) -> Skeleton:
+    """Where an occluded branch's slices split in two for a while (its front and back seen,
+    not its top), the skeleton holds two parallel pieces: one continues the branch and one
+    hangs from it. A piece lying within 1.5 radii (at least 5 mm) of another is a sliver:
+    a branch's tail that runs along one of its children is replaced by that child (the child
+    continues the branch); a childless side piece running along its parent is dropped."""
+    changed = True
+    while changed:
+        changed = False
+        kids: list[list[int]] = [[] for _ in sk.branches]
+        for i, b in enumerate(sk.branches):
+            if b.parent >= 0:
+                kids[b.parent].append(i)
+        for i, b in enumerate(sk.branches):
+            for c in kids[i]:
+                child = sk.branches[c]
+                tol = max(1.5 * float(np.median(b.radii)), 0.005)
+                k = int(np.argmin(np.linalg.norm(b.points - child.points[0], axis=1)))
+                tail = b.points[k:]
+                if len(tail) < 2 or len(child.points) < 2:
+                    continue
+                if not kids[c] and np.all(_dist_to_polyline(child.points[1:], b.points) <= tol):
+                    _drop(sk, c)  # a side sliver
+                    changed = True
+                    break
+                others = [o for o in kids[i] if o != c and
+                          np.linalg.norm(b.points[k:] - sk.branches[o].points[0], axis=1).min() < 1e-9]  # fmt: skip
+                if (not others and child.length > _length(tail)
+                        and np.all(_dist_to_polyline(tail[1:], child.points) <= tol)):  # fmt: skip
+                    _continue_with(sk, i, k, c)
+                    changed = True
+                    break
+            if changed:
+                break
+    return sk
+
+
+def _length(P: Array) -> float:
+    return float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum())
+
+
+def _drop(sk: Skeleton, c: int) -> None:
+    del sk.branches[c]
+    for b in sk.branches:
+        if b.parent > c:
+            b.parent -= 1
+
+
+def _continue_with(sk: Skeleton, i: int, k: int, c: int) -> None:
+    """Branch i keeps its points up to k and continues along child c; c's children move to i."""
+    b, child = sk.branches[i], sk.branches[c]
+    pts = np.vstack([b.points[: k + 1], child.points[1:]])
+    rad = np.concatenate([b.radii[: k + 1], child.radii[1:]])
+    sk.branches[i] = Branch(pts, rad, kind=b.kind, parent=b.parent, label=b.label)
+    for o in sk.branches:
+        if o.parent == c:
+            o.parent = i
+    _drop(sk, c)
 
 
 def _project_on_polyline(p: Array, pts: Array, radii: Array) -> tuple[Array, float]:

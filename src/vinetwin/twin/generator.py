@@ -21,7 +21,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -207,6 +207,22 @@ def generate_vine(seed: int = 0, params: VineParams | None = None) -> Skeleton:
                 n_cane += 1
             pos += rng.uniform(*p.spur_spacing)
     return sk
+
+
+@dataclass(frozen=True, kw_only=True)
+class SampleConfig:
+    """The vine `vinetwin sample` grows."""
+
+    seed: int = 0
+    """Random seed: the same seed gives the same vine."""
+    cordons: Literal[1, 2] = 2
+    """One cordon arm (unilateral) or two (bilateral)."""
+    edge: float = 0.002
+    """Target triangle edge length of the tube mesh, metres (smaller: denser mesh)."""
+    cut_points: int = 4
+    """How many cut-point candidates become cut points with a default pruning pose."""
+    dense: bool = False
+    """Grow a dense vine (spurs twice as close, 2-4 canes each: the paper's Table 2 vines)."""
 
 
 #: A dense vine (the paper's Table 2 vines): spurs twice as close, two to four canes each.
