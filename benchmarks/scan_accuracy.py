@@ -30,7 +30,7 @@ from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
 from vinetwin.twin.skeleton import Skeleton, tube_mesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_file import machine  # noqa: E402
+from results_file import machine
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -59,7 +59,9 @@ def truth_skeleton(name: str) -> Skeleton:
 
 
 def write_ply(path: Path, points: np.ndarray) -> None:
-    import open3d as o3d
+    from vinetwin import _lazy
+
+    o3d = _lazy.open3d()
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     o3d.io.write_point_cloud(str(path), pc, write_ascii=False)
@@ -101,7 +103,9 @@ def run_one(name: str, quality: str, seed: int, work: Path, trellis: bool) -> di
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--plants", nargs="*", default=list(PLANTS))
     ap.add_argument("--qualities", nargs="*", default=list(QUALITY_LADDER))
     ap.add_argument("--seeds", type=int, default=1)
@@ -109,7 +113,9 @@ def main() -> None:
     ap.add_argument("--trellis", action="store_true", help="scan the ground, a wire and posts too")
     a = ap.parse_args()
     rows = []
-    print("| plant | quality | points | s | up err ° | complete | precise | radius err mm | tips found/true (extra) | canes lost/seen | cuts found/true | Chamfer mm | F@2mm |")
+    print(
+        "| plant | quality | points | s | up err ° | complete | precise | radius err mm | tips found/true (extra) | canes lost/seen | cuts found/true | Chamfer mm | F@2mm |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for name in a.plants:
@@ -118,7 +124,12 @@ def main() -> None:
                     try:
                         r = run_one(name, quality, seed, Path(tmp), a.trellis)
                     except Exception as exc:  # a quality where the import breaks is a result
-                        r = {"plant": name, "quality": quality, "seed": seed, "error": str(exc)[:200]}
+                        r = {
+                            "plant": name,
+                            "quality": quality,
+                            "seed": seed,
+                            "error": str(exc)[:200],
+                        }
                         print(f"| {name} | {quality} | failed: {r['error']} |")
                         rows.append(r)
                         continue

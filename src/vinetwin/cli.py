@@ -332,7 +332,7 @@ class CaptureSynthetic:
     """Twin folder whose mesh is captured."""
     out: Path
     """Capture folder to write."""
-    config: Annotated[SyntheticCaptureConfig, Nested] = field(default_factory=SyntheticCaptureConfig)
+    config: Annotated[SyntheticCaptureConfig, Nested] = field(default_factory=SyntheticCaptureConfig)  # fmt: skip
 
     def run(self) -> None:
         from vinetwin.reconstruct.synthetic import synthetic_capture

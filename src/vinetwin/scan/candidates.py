@@ -34,6 +34,16 @@ def _arc(points: Array) -> Array:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
 
 
+def _arc_of_nearest(p: Array, pts: Array, arc: Array) -> float:
+    """Arc position of the point of the polyline `pts` nearest p."""
+    if len(pts) == 1:
+        return 0.0
+    a, ab = pts[:-1], np.diff(pts, axis=0)
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum((ab * ab).sum(1), 1e-18), 0, 1)
+    k = int(np.argmin(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
+    return float(arc[k] + t[k] * (arc[k + 1] - arc[k]))
+
+
 def _attachments(sk: Skeleton) -> tuple[list[list[float]], list[float]]:
     """For each branch, the arc positions on it where children start; and each branch's
     position on its parent."""
@@ -44,9 +54,7 @@ def _attachments(sk: Skeleton) -> tuple[list[list[float]], list[float]]:
         p = b.parent
         if p < 0:
             continue
-        pts = sk.branches[p].points
-        k = int(np.argmin(np.linalg.norm(pts - b.points[0], axis=1)))
-        at[i] = float(arcs[p][k])
+        at[i] = _arc_of_nearest(b.points[0], sk.branches[p].points, arcs[p])
         on[p].append(at[i])
     return on, at
 

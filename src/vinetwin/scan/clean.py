@@ -9,17 +9,22 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from vinetwin.frames import Array
 
+Mask = npt.NDArray[np.bool_]
 
-def statistical_strays(points: Array, neighbours: int, std: float) -> Array:
+
+def statistical_strays(points: Array, neighbours: int, std: float) -> Mask:
     """(N,) True for points whose mean distance to their `neighbours` nearest is more than
     `std` deviations above the scan's mean (Open3D's statistical outlier removal)."""
-    import open3d as o3d
+    from vinetwin import _lazy
+
+    o3d = _lazy.open3d()
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     _, keep = pc.remove_statistical_outlier(nb_neighbors=neighbours, std_ratio=std)
@@ -30,7 +35,7 @@ def statistical_strays(points: Array, neighbours: int, std: float) -> Array:
 
 @dataclass
 class Ground:
-    mask: Array
+    mask: Mask
     """(N,) True for the ground's points."""
     normal: Array
     """Unit normal, pointing to the plant's side."""
@@ -42,7 +47,9 @@ def find_ground(points: Array, spacing: float, rng: np.random.Generator) -> Grou
     """A plane under the plant: at least 10% of the points within a threshold of it, spread
     over at least half the scan's width, and 97% of the other points on one side of it. A
     vertical canopy (a VSP vine's canes) has the plant on both sides and is not taken."""
-    import open3d as o3d
+    from vinetwin import _lazy
+
+    o3d = _lazy.open3d()
 
     sample = points if len(points) <= 200_000 else points[rng.choice(len(points), 200_000, False)]
     thr = float(np.clip(3 * spacing, 0.01, 0.05))
@@ -77,14 +84,14 @@ def find_ground(points: Array, spacing: float, rng: np.random.Generator) -> Grou
     return Ground(dist <= thr, n, off)
 
 
-def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generator) -> Array:
+def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generator) -> Mask:
     """(N,) True for points of trellis wires: straight lines of points at least 1 m long within
     10 degrees of horizontal, where nothing thicker than the wire surrounds them (where the
     cordon lies on the wire, the cordon's points stay)."""
     from vinetwin.scan.skeletonize import voxel_thin
 
     mask = np.zeros(len(points), bool)
-    tol = float(np.clip(2 * spacing, 0.004, 0.02))
+    tol = float(np.clip(2 * spacing, 0.004, 0.01))
     P, _ = voxel_thin(points, max(spacing, 0.005))
     P = P[_horizontal_lines(P, up)]  # a wire is a few hundred of 100k points: look among these
     for _ in range(8):  # wires found at most
@@ -108,13 +115,22 @@ def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generato
         n_in = np.bincount(s0[inl] - lo, minlength=s0[wide].max() - lo + 1)
         n_wide = np.bincount(s0[wide] - lo, minlength=len(n_in))
         thin_slice = (n_in > 0) & (n_wide <= 1.3 * n_in + 2)
-        if thin_slice.sum() * 0.05 < 0.8:
+        # a wire runs on: 1 m of thin slices with at most one empty slice in any two
+        run = best = 0
+        for k in range(len(thin_slice)):
+            run = (
+                run + 1
+                if thin_slice[k] or (k + 1 < len(thin_slice) and thin_slice[k + 1] and run)
+                else 0
+            )
+            best = max(best, run)
+        if best * 0.05 < 1.0:
             break
         mask |= inl & thin_slice[np.clip(s0 - lo, 0, len(thin_slice) - 1)] & wide
     return mask
 
 
-def _horizontal_lines(P: Array, up: Array, k: int = 12) -> Array:
+def _horizontal_lines(P: Array, up: Array, k: int = 12) -> Mask:
     """(N,) True where P's neighbourhood is a line (the largest of its spread's eigenvalues
     over 90% of their sum) within 15 degrees of horizontal: where a wire can be."""
     if len(P) < k + 1:
@@ -128,14 +144,16 @@ def _horizontal_lines(P: Array, up: Array, k: int = 12) -> Array:
     return (lin > 0.9) & horiz
 
 
-def _near_any(P: Array, Q: Array, r: float) -> Array:
+def _near_any(P: Array, Q: Array, r: float) -> Mask:
     if len(Q) == 0:
         return np.zeros(len(P), bool)
     d, _ = cKDTree(Q).query(P, k=1, distance_upper_bound=r)
     return np.isfinite(d)
 
 
-def _best_line(P: Array, up: Array, tol: float, rng: np.random.Generator) -> tuple[Array, Array] | None:
+def _best_line(
+    P: Array, up: Array, tol: float, rng: np.random.Generator
+) -> tuple[Array, Array] | None:
     """The horizontal line through two of P's points with the most points within `tol`,
     spanning at least 1 m (RANSAC over 3000 pairs)."""
     i = rng.integers(len(P), size=6000)
@@ -165,7 +183,7 @@ def _best_line(P: Array, up: Array, tol: float, rng: np.random.Generator) -> tup
     return best
 
 
-def find_posts(points: Array, up: Array, voxel: float) -> Array:
+def find_posts(points: Array, up: Array, voxel: float) -> Mask:
     """(N,) True for points of posts: pieces apart from the rest that are straight
     (linearity > 0.9), at least 1 m long and within 15 degrees of vertical. The largest piece
     that is not a post is the plant; when every large piece looks like a post, the largest

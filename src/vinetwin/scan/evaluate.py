@@ -77,7 +77,9 @@ def skeleton_accuracy(
     dA, iA = tB.query(A)
     dB, _ = tA.query(B)
     match = dA <= tol
-    rad_err = float(np.median(np.abs(rB[iA[match]] - rA[match]))) * 1000 if match.any() else float("nan")
+    rad_err = (
+        float(np.median(np.abs(rB[iA[match]] - rA[match]))) * 1000 if match.any() else float("nan")
+    )
     tips_t = np.array([p[-1] for p, *_ in tip_paths(truth)])
     tips_o = np.array([p[-1] for p, *_ in tip_paths(ours)])
     found = int((cKDTree(tips_o).query(tips_t)[0] <= 0.03).sum()) if len(tips_o) else 0

@@ -110,7 +110,7 @@ def split_trunk(sk: Skeleton, up: Array) -> None:
     cordon = Branch(P[k:], b.radii[k:], kind="cordon", parent=0, label="cordon")
     sk.branches[0] = Branch(P[: k + 1], b.radii[: k + 1], kind="trunk", parent=-1, label="trunk")
     sk.branches.insert(1, cordon)
-    for i, c in enumerate(sk.branches[2:], start=2):
+    for c in sk.branches[2:]:
         if c.parent >= 1:
             c.parent += 1
         elif c.parent == 0:

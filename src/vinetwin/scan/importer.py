@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -30,68 +29,21 @@ from vinetwin.scan.frame import (
     transform_skeleton,
     vine_from_scan,
 )
-from vinetwin.scan.read import ScanData, detect_units, read_scan, sample_mesh_surface, spacing_and_extent
-from vinetwin.scan.skeletonize import SkeletonResult, skeletonize
+from vinetwin.scan.read import (
+    ScanData,
+    detect_units,
+    read_scan,
+    sample_mesh_surface,
+    spacing_and_extent,
+)
+from vinetwin.scan.result import ScanImport
+from vinetwin.scan.skeletonize import skeletonize
 from vinetwin.twin.skeleton import Skeleton
 
 if TYPE_CHECKING:
     from vinetwin.twin.model import Twin
 
 log = logging.getLogger(__name__)
-
-#: Labels of removed points, in the order the report lists them.
-REMOVED = ("stray", "ground", "wire", "post", "apart")
-
-
-@dataclass
-class ScanImport:
-    """What an import found, before anything is written."""
-
-    skeleton: Skeleton
-    """In the vine frame, with kinds and cut candidates."""
-    T_vine_scan: Array
-    """Maps the file's points, converted to metres (`units`), into the vine frame."""
-    units: str
-    unit_note: str
-    up_from: str
-    """How the up axis was found: given, ground, trunk."""
-    points: Array
-    """The plant's points kept, in the vine frame."""
-    removed: dict[str, Array] = field(default_factory=dict)
-    """Removed points by reason (vine frame)."""
-    read: int = 0
-    spacing: float = 0.0
-    result: SkeletonResult | None = None
-    notes: list[str] = field(default_factory=list)
-    mesh: tuple[Array, np.ndarray] | None = None
-    """The scan's own mesh in the vine frame (mesh files)."""
-    seconds: dict[str, float] = field(default_factory=dict)
-
-    def counts(self) -> dict[str, int]:
-        return {"read": self.read, "kept": len(self.points),
-                **{k: len(self.removed.get(k, ())) for k in REMOVED}}  # fmt: skip
-
-    def summary(self) -> dict[str, Any]:
-        """What the twin's provenance and the report keep of the import."""
-        r = self.result
-        return {
-            "units": self.units,
-            "units_note": self.unit_note,
-            "up_from": self.up_from,
-            "T_vine_scan": np.round(self.T_vine_scan, 9).tolist(),
-            "point_spacing_m": round(self.spacing, 6),
-            "counts": self.counts(),
-            "notes": self.notes,
-            "skeleton": {
-                "method": "geodesic level sets (vinetwin.scan.skeletonize)",
-                "voxel_m": round(r.voxel, 6) if r else None,
-                "bin_m": round(r.bin, 6) if r else None,
-                "bridges": r.bridges if r else 0,
-                "branches": len(self.skeleton.branches),
-                "candidates": len(self.skeleton.candidates),
-            },
-            "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
-        }
 
 
 def analyse_scan(
@@ -114,7 +66,11 @@ def analyse_scan(
     rng = np.random.default_rng(0)
     data: ScanData = read_scan(path, config.max_points)
     notes = list(data.notes)
-    units, unit_note = detect_units(data.points, config.units, config.plant, rng)
+    probe = data.points
+    if data.mesh is not None:  # vertices may repeat (STL) or be far apart: use the surface
+        V, F = data.mesh
+        probe = sample_mesh_surface(V, F, float(np.ptp(V, axis=0).max()) / 400, rng)
+    units, unit_note = detect_units(probe, config.units, config.plant, rng)
     scale = UNIT_SCALE[units]
     pts = data.points * scale
     mesh = None
@@ -159,7 +115,7 @@ def analyse_scan(
     removed_scan["apart"] = pts[res.stray_mask]
     pts = pts[~res.stray_mask]
     step("skeleton")
-    _check_plant(res.skeleton, float(np.ptp(pts @ up)), path)
+    _check_plant(res.skeleton, pts, path)
     sk = res.skeleton
     foot = sk.branches[0].points[0].copy()
     if ground is not None:  # the trunk's foot on the ground
@@ -188,13 +144,26 @@ def analyse_scan(
     )  # fmt: skip
 
 
-def _check_plant(sk: Skeleton, height: float, path: str | Path) -> None:
-    """Refuses what is no plant: a skeleton with almost no length (a ball, a plane's blob)."""
+#: A plant is tubes: the skeleton's median radius (length-weighted) is under this share of the
+#: plant's extent (a vine's canes 0.3-0.5%, a tree's branches under 2%; a plane's or a ball's
+#: level sets are arcs as wide as the thing itself, 10-50%).
+MAX_RADIUS_SHARE = 0.05
+
+
+def _check_plant(sk: Skeleton, points: Array, path: str | Path) -> None:
+    """Refuses what is no plant: a skeleton with almost no length, or whose branches are as
+    wide as the scan (a plane, a ball)."""
     total = sum(b.length for b in sk.branches)
-    if total < 0.1 or height < 0.05:
+    extent = float(np.ptp(points, axis=0).max())
+    r = np.concatenate([0.5 * (b.radii[1:] + b.radii[:-1]) for b in sk.branches])
+    w = np.concatenate([np.linalg.norm(np.diff(b.points, axis=0), axis=1) for b in sk.branches])
+    order = np.argsort(r)
+    med = float(r[order][np.searchsorted(np.cumsum(w[order]), 0.5 * w.sum())]) if w.sum() > 0 else 0
+    if total < 0.1 or med > MAX_RADIUS_SHARE * extent:
         raise ScanError(
-            f"{path}: no plant found: the skeleton is {total:.3f} m long over a height of "
-            f"{height:.3f} m (a plane or a ball, not branches)"
+            f"{path}: no plant found: the skeleton is {total:.2f} m long with branches "
+            f"{2 * med * 100:.1f} cm thick in a scan {extent:.2f} m across (a plane, a ball or a "
+            f"block, not branches)"
         )
 
 
@@ -242,7 +211,9 @@ def _twin_from_scan_mesh(
     twin = Twin.create(out, V, F, skeleton=scan.skeleton, source=source, overwrite=overwrite)
     cands = scan.skeleton.candidates
     if config.cut_points and cands:
-        picks = np.unique(np.linspace(0, len(cands) - 1, min(config.cut_points, len(cands))).round().astype(int))
+        picks = np.unique(
+            np.linspace(0, len(cands) - 1, min(config.cut_points, len(cands))).round().astype(int)
+        )
         for i in picks:
             c = cands[i]
             cut = twin.add_cut_point(c.point, c.cane_axis, name=c.label, source="candidate")

@@ -80,7 +80,7 @@ def read_scan(path: str | Path, max_points: int) -> ScanData:
 def _finish(path: Path, data: ScanData, max_points: int) -> ScanData:
     pts = np.asarray(data.points, dtype=np.float64).reshape(-1, 3)
     data.read = data.read or len(pts)
-    ok = np.isfinite(pts).all(axis=1)
+    ok = np.asarray(np.isfinite(pts).all(axis=1), dtype=bool)
     if not ok.all():
         data.notes.append(f"{int((~ok).sum())} points with NaN or infinite coordinates dropped")
     pts = pts[ok]
@@ -101,7 +101,9 @@ def _finish(path: Path, data: ScanData, max_points: int) -> ScanData:
 
 # ---------------------------------------------------------------------------- point clouds
 def _read_open3d(path: Path, fmt: str) -> ScanData:
-    import open3d as o3d
+    from vinetwin import _lazy
+
+    o3d = _lazy.open3d()
 
     pc = o3d.io.read_point_cloud(str(path), format=fmt, print_progress=False)
     pts = np.asarray(pc.points)
@@ -165,7 +167,8 @@ def _read_las(path: Path, max_points: int) -> ScanData:
         total = int(fh.header.point_count)
         step = max(1, math.ceil(total / max_points))
         parts, cols = [], []
-        for chunk in fh.chunk_iterator(1_000_000):
+        for chunk_ in fh.chunk_iterator(1_000_000):
+            chunk: Any = chunk_
             xyz = np.column_stack([chunk.x, chunk.y, chunk.z]).astype(np.float64)[::step]
             parts.append(xyz)
             names = set(chunk.point_format.dimension_names)
@@ -281,7 +284,9 @@ def _numeric_row(toks: list[str]) -> bool:
     return True
 
 
-def _parse_rows(rows: list[str], delim: str | None, ncols: int, use: list[int]) -> tuple[Array, int]:
+def _parse_rows(
+    rows: list[str], delim: str | None, ncols: int, use: list[int]
+) -> tuple[Array, int]:
     """The `use` columns of the rows with `ncols` fields; rows that do not parse are counted."""
     text = "".join(r if r.endswith("\n") else r + "\n" for r in rows)
     try:
@@ -328,10 +333,7 @@ def detect_units(
 
     def fits(u: str) -> bool:
         s = UNIT_SCALE[u]
-        return (
-            lo_m <= extent * s <= hi_m
-            and POINT_SPACING[0] <= spacing * s <= POINT_SPACING[1]
-        )
+        return lo_m <= extent * s <= hi_m and POINT_SPACING[0] <= spacing * s <= POINT_SPACING[1]
 
     def sizes(u: str) -> str:
         s = UNIT_SCALE[u]

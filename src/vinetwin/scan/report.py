@@ -19,7 +19,7 @@ from vinetwin.frames import Array
 from vinetwin.twin.skeleton import Skeleton
 
 if TYPE_CHECKING:
-    from vinetwin.scan.importer import ScanImport
+    from vinetwin.scan.result import ScanImport
     from vinetwin.twin.model import Twin
 
 KIND_COLOURS = {"trunk": "#5b3a1a", "cordon": "#a0522d", "spur": "#d2691e", "cane": "#2e8b57",
@@ -42,6 +42,7 @@ def plot_skeleton(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     rng = np.random.default_rng(0)
     pts = points if len(points) <= 60_000 else points[rng.choice(len(points), 60_000, False)]
@@ -65,11 +66,11 @@ def plot_skeleton(
         ax.set_title(name)
         ax.set_xlabel("xyz"[i] + " (m)")
         ax.set_ylabel("z (m)")
-    handles = [plt.Line2D([], [], color=c, lw=2, label=k) for k, c in KIND_COLOURS.items()
+    handles = [Line2D([], [], color=c, lw=2, label=k) for k, c in KIND_COLOURS.items()
                if any(b.kind == k for b in sk.branches)]  # fmt: skip
-    handles.append(plt.Line2D([], [], color="r", marker="x", ls="", label="cut candidate"))
+    handles.append(Line2D([], [], color="r", marker="x", ls="", label="cut candidate"))
     if truth is not None:
-        handles.append(plt.Line2D([], [], color="k", ls="--", label="truth"))
+        handles.append(Line2D([], [], color="k", ls="--", label="truth"))
     axes[0].legend(handles=handles, loc="upper left", fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
@@ -78,7 +79,9 @@ def plot_skeleton(
 
 
 def write_removed(path: Path, removed: dict[str, Array]) -> None:
-    import open3d as o3d
+    from vinetwin import _lazy
+
+    o3d = _lazy.open3d()
 
     pts = [q for q in removed.values() if len(q)]
     if not pts:
@@ -102,7 +105,11 @@ def write_report(folder: Path, scan: ScanImport, twin: Twin, truth: str | Path |
     """Writes the report's files into `folder` (made when missing)."""
     folder.mkdir(parents=True, exist_ok=True)
     summary = scan.summary()
-    data: dict[str, Any] = {"twin": str(twin.root), **summary, "branches": branch_table(scan.skeleton)}
+    data: dict[str, Any] = {
+        "twin": str(twin.root),
+        **summary,
+        "branches": branch_table(scan.skeleton),
+    }
     truth_sk = None
     if truth is not None:
         from vinetwin.scan.evaluate import mesh_accuracy, skeleton_accuracy

@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
@@ -46,7 +47,7 @@ class SkeletonResult:
     """Points in pieces that no gap up to `gap` joins to the plant (left out of the skeleton)."""
     bridges: int
     """Gaps bridged between pieces of the plant."""
-    stray_mask: Array = field(default_factory=lambda: np.zeros(0, bool))
+    stray_mask: npt.NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     """(N,) True for the input points left out as stray."""
     up: Array | None = None
     """The trunk's direction from its foot (when the up axis was not given)."""
@@ -72,17 +73,22 @@ def _graph(P: Array, radius: float) -> sparse.csr_matrix:
     return (g + g.T).tocsr()
 
 
-def _bridge(P: Array, g: sparse.csr_matrix, gap: float) -> tuple[sparse.csr_matrix, int, Array]:
-    """Joins pieces closer than `gap` (minimum spanning tree over the pieces); returns the
-    graph, the number of bridges and the mask of points in the plant's piece."""
+def _bridge(
+    P: Array, g: sparse.csr_matrix, gap: float, min_piece: int = 1
+) -> tuple[sparse.csr_matrix, int, npt.NDArray[np.bool_]]:
+    """Joins pieces closer than `gap` (minimum spanning tree over the pieces; only pieces of at
+    least `min_piece` points); returns the graph, the number of bridges and the mask of points
+    in the plant's piece."""
     ncomp, lab = csgraph.connected_components(g, directed=False)
     if ncomp == 1:
         return g, 0, np.ones(len(P), bool)
+    sizes = np.bincount(lab, minlength=ncomp)
     # representatives: one point per (gap/3) cell and piece, so the search stays small
     cell = np.floor((P - P.min(0)) / (gap / 3)).astype(np.int64)
     key = np.column_stack([cell, lab])
     _, first = np.unique(key, axis=0, return_index=True)
     reps = np.sort(first)
+    reps = reps[sizes[lab[reps]] >= min_piece]
     pairs = cKDTree(P[reps]).query_pairs(gap, output_type="ndarray")
     a, b = reps[pairs[:, 0]], reps[pairs[:, 1]]
     other = lab[a] != lab[b]
@@ -122,12 +128,13 @@ def _circle(points: Array, centre: Array, t: Array) -> tuple[Array, float]:
     if len(points) >= 10:
         A = np.column_stack([2 * x, 2 * y, np.ones_like(x)])
         sol, *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
-        a, b, c = sol
+        a, b, c = (float(v) for v in sol)
         rr = c + a * a + b * b
         if rr > 0:
             r = math.sqrt(rr)
             ang = np.sort(np.arctan2(y - b, x - a))
-            cover = 2 * math.pi - float(np.max(np.diff(np.concatenate([ang, [ang[0] + 2 * math.pi]]))))
+            steps = np.diff(np.concatenate([ang, [ang[0] + 2 * math.pi]])).astype(np.float64)
+            cover = 2 * math.pi - float(steps.max())
             if 0.5 * r0 <= r <= 2.0 * max(r0, 1e-4) and math.hypot(a, b) < 2 * r and cover > 2.0:
                 return centre + a * u + b * v, r
     return centre, max(r0, 1e-4)
@@ -147,7 +154,10 @@ def skeletonize(
     if len(P) < 20:
         raise ScanError(f"only {len(P)} voxels of {voxel * 1000:.3g} mm: too little for a plant")
     g = _graph(P, 2.5 * voxel)
-    g, bridges, plant = _bridge(P, g, max(cfg.gap, 3 * voxel))
+    g, bridges, plant = _bridge(P, g, max(cfg.gap, 6 * voxel))
+    if not plant.all():  # pieces of some size (a twig, not a stray) across wider gaps
+        g, more, plant = _bridge(P, g, max(2 * cfg.gap, 12 * voxel), min_piece=10)
+        bridges += more
     idx = np.flatnonzero(plant)
     P, g = P[idx], g[idx][:, idx]
     remap = np.full(len(plant), -1)
@@ -186,6 +196,8 @@ class _LevelTree:
             if parent[c] >= 0:
                 self.children[parent[c]].append(c)
         self.roots = [c for c in range(n) if parent[c] < 0]
+        self.end_window = 0.1
+        """How far from an end its thickness is measured (m)."""
 
     def _ahead(self, k: int, steps: int = 3) -> Array:
         """The centre a few nodes down k's farthest-reaching path."""
@@ -228,7 +240,11 @@ class _LevelTree:
                     best_score = -1.0
                     for k in kids:
                         d = self._ahead(k) - self.centre[c]
-                        cos = float(d @ d_in / max(np.linalg.norm(d) * n_in, 1e-12)) if n_in > 1e-9 else 1.0
+                        cos = (
+                            float(d @ d_in / max(np.linalg.norm(d) * n_in, 1e-12))
+                            if n_in > 1e-9
+                            else 1.0
+                        )
                         score = self._start_radius(k) * (1.0 + cos) / 2
                         if score > best_score:
                             nxt, best_score = k, score
@@ -247,7 +263,7 @@ class _LevelTree:
             for end in (chain[-1],) + ((chain[0],) if self.parent[chain[0]] < 0 else ()):
                 nodes = chain[::-1] if end == chain[-1] else chain
                 c0 = self.centre[end]
-                near = [k for k in nodes if np.linalg.norm(self.centre[k] - c0) < 0.1]
+                near = [k for k in nodes if np.linalg.norm(self.centre[k] - c0) < self.end_window]
                 r = float(np.median(self.radius[near]))
                 if r > best_r:
                     best, best_r = end, r
@@ -265,7 +281,9 @@ class _LevelTree:
         keep = [0]
         for i in range(1, len(C)):
             d = C[i] - C[max(0, i - 3)]
-            if s[i] > 0.6 or (s[i] > 0.1 and d @ first < 0.7 * np.linalg.norm(d) * np.linalg.norm(first)):
+            if s[i] > 0.6 or (
+                s[i] > 0.1 and d @ first < 0.7 * np.linalg.norm(d) * np.linalg.norm(first)
+            ):
                 break
             keep.append(i)
         Q = C[keep]
@@ -486,7 +504,7 @@ def _level_tree(
     centre = np.empty((len(keep), 3))
     radius = np.empty(len(keep))
     kids_k: list[list[int]] = [[] for _ in range(len(keep))]
-    for i, c in enumerate(keep):
+    for i in range(len(keep)):
         if parent_k[i] >= 0:
             kids_k[parent_k[i]].append(i)
     for i, c in enumerate(keep):
@@ -504,5 +522,7 @@ def _level_tree(
         if np.linalg.norm(t) < 1e-6:
             t = np.array([0.0, 0.0, 1.0])
         centre[i], radius[i] = _circle(pts, centroid[c], t / np.linalg.norm(t))
-    return _LevelTree(parent_k, centre, radius, reach[keep], geo_min[keep],
+    tree = _LevelTree(parent_k, centre, radius, reach[keep], geo_min[keep],
                       [members[c] for c in keep], P)  # fmt: skip
+    tree.end_window = max(0.1, 3 * binw)
+    return tree

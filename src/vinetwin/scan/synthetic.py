@@ -99,7 +99,9 @@ def simulate_scan(
 ) -> tuple[Array, Array]:
     """Points of a simulated scan of the mesh (V, F) in the vine frame (metres), and the label
     of each (0 plant, 1 trellis, 2 stray)."""
-    import open3d as o3d
+    from vinetwin import _lazy
+
+    o3d = _lazy.open3d()
 
     rng = np.random.default_rng(seed)
     lo, hi = V.min(0), V.max(0)
@@ -107,8 +109,12 @@ def simulate_scan(
     scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
     plant_ids = 1
     if quality.trellis:
-        TV, TF = _trellis(np.stack([lo, hi]), wire_height if wire_height is not None else hi[2] * 0.6)
-        scene.add_triangles(o3d.core.Tensor(TV.astype(np.float32)), o3d.core.Tensor(TF.astype(np.uint32)))
+        TV, TF = _trellis(
+            np.stack([lo, hi]), wire_height if wire_height is not None else hi[2] * 0.6
+        )
+        scene.add_triangles(
+            o3d.core.Tensor(TV.astype(np.float32)), o3d.core.Tensor(TF.astype(np.uint32))
+        )
     centre = 0.5 * (lo + hi)
     size = float(np.linalg.norm(hi - lo))
     R = max(1.5, 0.9 * size)
@@ -117,7 +123,9 @@ def simulate_scan(
     for k in range(quality.positions):
         az = az0 + 2 * math.pi * k / quality.positions
         origin = centre + np.array([R * math.cos(az), R * math.sin(az), 0.3 * (hi[2] - lo[2])])
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        corners = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
         d = corners - origin
         yaw = np.arctan2(d[:, 1], d[:, 0])
         yaw = np.unwrap(yaw - yaw[0]) + yaw[0]
@@ -126,7 +134,9 @@ def simulate_scan(
         ys = np.arange(yaw.min() - 0.05, yaw.max() + 0.05, step)
         ps = np.arange(pitch.min() - 0.05, pitch.max() + 0.05, step)
         Y, Pp = np.meshgrid(ys, ps, indexing="xy")
-        dirs = np.stack([np.cos(Pp) * np.cos(Y), np.cos(Pp) * np.sin(Y), np.sin(Pp)], -1).reshape(-1, 3)
+        dirs = np.stack([np.cos(Pp) * np.cos(Y), np.cos(Pp) * np.sin(Y), np.sin(Pp)], -1).reshape(
+            -1, 3
+        )
         rays = np.hstack([np.broadcast_to(origin, dirs.shape), dirs]).astype(np.float32)
         ans = scene.cast_rays(o3d.core.Tensor(rays))
         t = ans["t_hit"].numpy()
