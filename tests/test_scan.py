@@ -369,3 +369,25 @@ def test_command_line_import_scan(scanned: Scanned, tmp_path: Path) -> None:
     assert (tmp_path / "rep" / "report.md").exists()
     assert main(["import-scan", str(tmp_path / "none.ply"), "--out", str(tmp_path / "w.twin")]) == 2
     assert main(["import-scan", str(f), "--out", str(tmp_path / "w.twin"), "--internode", "5"]) == 2
+
+
+def test_the_web_app_opens_a_scanned_twin_with_its_candidates(
+    scanned: Scanned, tmp_path: Path
+) -> None:
+    """The authoring app serves a scanned twin: its skeleton and candidates are on the page, and
+    a click on a candidate's cane (from its pose's camera) places a cut point with its pose."""
+    from tests.test_web import _free_port, ray_at
+    from vinetwin.web.server import serve
+
+    f = _ply_cloud(tmp_path / "s.ply", scanned.in_scanner())
+    twin, scan = import_scan(f, tmp_path / "v.twin", ScanImportConfig(cut_points=2))
+    app = serve(twin.root, port=_free_port())
+    try:
+        assert getattr(app, "_candidates", None) is not None and getattr(app, "_skeleton", None)
+        assert len(app._candidates.points) == len(scan.skeleton.candidates)
+        sess = app.session
+        origin, direction, cut = ray_at(sess._require())
+        hit = sess.click(origin, direction)
+        assert hit is not None and np.linalg.norm(hit[0].point - cut) < 0.012
+    finally:
+        app.close()
