@@ -8,6 +8,7 @@ on: what the document shows is what the files hold.
 from __future__ import annotations
 
 import json
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -95,6 +96,19 @@ def main() -> None:
             s, b = r["server_ms"], r[key]
             print(f"| {d['twin']} | {d['gl']} | {r['drawn_faces']} | {s['median']:.0f}, "
                   f"{s['p90']:.0f} | {b['median']:.0f}, {b['p90']:.0f} | {clock} |")  # fmt: skip
+
+    scan = one_file("scan_speed", "A scan of a vine, 500k points, to a twin")
+    if scan is not None:
+        print("| route | median s | runs s | Chamfer mm | F-score at 2 mm |")
+        print("|---|---|---|---|---|")
+        for name, key, acc in (
+            ("vinetwin import-scan", "import_scan", "import_scan"),
+            ("Open3D outliers, normals, Poisson depth 9", "poisson", "poisson"),
+        ):
+            runs = scan[f"{key}_s"]
+            print(f"| {name} | {statistics.median(runs):.1f} | "
+                  f"{', '.join(f'{x:.1f}' for x in runs)} | {scan[f'{acc}_chamfer_mm']:.2f} | "
+                  f"{scan[f'{acc}_fscore_2mm']:.2f} |")  # fmt: skip
 
 
 if __name__ == "__main__":

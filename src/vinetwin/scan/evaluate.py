@@ -5,8 +5,10 @@
 - **radius error**: the median |our radius - the true radius| where the two are within `tol`;
 - **tips**: true tips (free ends of canes and branches) with one of ours within 3 cm, and ours
   with no true tip near (extra);
-- **canes lost**: true tip paths that the scan saw (points along at least half of them) but our
-  skeleton misses (less than half within `tol`);
+- **canes lost**: true tip paths at least `MIN_CANE` long that the scan saw (points along at
+  least half of them) but our skeleton misses (less than half within `tol`); shorter stubs are
+  under the skeleton's junction-noise threshold (`SkeletonConfig.min_branch` plus the parent's
+  radius) and are not counted;
 - **candidates**: the cut rule (`candidates.cut_candidates`) applied to both skeletons: the share
   of the truth's within `tol` of ours;
 - **mesh**: Chamfer distance (mean of both directions) and F-score at 2 mm between the meshes.
@@ -23,6 +25,9 @@ from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates, tip_paths
 from vinetwin.scan.config import PlantKind
 from vinetwin.twin.skeleton import Skeleton
+
+#: Tip paths shorter than this (m) are stubs, not canes, for the "canes lost" count.
+MIN_CANE = 0.06
 
 
 def sample_skeleton(sk: Skeleton, step: float = 0.002) -> tuple[Array, Array]:
@@ -87,6 +92,8 @@ def skeleton_accuracy(
     seen = lost = 0
     sp = cKDTree(scan_points) if scan_points is not None else None
     for P, R, _, _ in tip_paths(truth):
+        if float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum()) < MIN_CANE:
+            continue
         Q, Rq = _resample(P, R, 0.005)
         if sp is not None:
             d, _ = sp.query(Q)
