@@ -84,6 +84,7 @@ def main() -> None:
         path, V, F, T_scan_vine = make_scan(work)
         n = int(_lazy.open3d().io.read_point_cloud(str(path)).points.__len__())
         ours, theirs = [], []
+        PV, PF = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
         for r in range(a.repeats):
             out = work / f"v{r}.twin"
             t0 = time.perf_counter()
