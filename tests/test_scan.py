@@ -164,15 +164,12 @@ def test_the_vine_frame_is_found_and_kept_for_poses_back_in_the_scanners(
     # the row runs along x (either way along it)
     assert abs(T[0, 0]) > np.cos(np.radians(10))
     # a pose given back in the scanner's frame, in metres
-    pose = twin.poses[0].T_vine_camera if hasattr(twin.poses[0], "T_vine_camera") else None
     T_vine_x = np.eye(4)
     T_vine_x[:3, 3] = [0.1, -0.2, 0.7]
     back = scan_frame_pose(Twin.load(twin.root), T_vine_x)
-    p_scan_m = scanned.in_scanner(1.0)
     assert back.shape == (4, 4)
     expected = np.linalg.inv(scan.T_vine_scan) @ T_vine_x
     assert np.allclose(back, expected)
-    del pose, p_scan_m
     assert twin.provenance["source"]["scan"]["units"] == "mm"
 
 

@@ -25,23 +25,21 @@ import numpy as np
 from vinetwin.frames import Array
 from vinetwin.scan.config import FIRST_NODE, PlantKind
 from vinetwin.twin.importers import CANDIDATE_OFFSET
-from vinetwin.twin.skeleton import BranchKind, CutCandidate, Skeleton
+from vinetwin.twin.skeleton import (
+    BranchKind,
+    CutCandidate,
+    Skeleton,
+    arc_length,
+    nearest_on_polyline,
+)
 
 _EPS = 1e-3  # m: a child starting this close to its parent's end continues it
 
 
-def _arc(points: Array) -> Array:
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
-
-
 def _arc_of_nearest(p: Array, pts: Array, arc: Array) -> float:
     """Arc position of the point of the polyline `pts` nearest p."""
-    if len(pts) == 1:
-        return 0.0
-    a, ab = pts[:-1], np.diff(pts, axis=0)
-    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum((ab * ab).sum(1), 1e-18), 0, 1)
-    k = int(np.argmin(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
-    return float(arc[k] + t[k] * (arc[k + 1] - arc[k]))
+    k, t, _ = nearest_on_polyline(p, pts)
+    return float(arc[k] + t * (arc[min(k + 1, len(arc) - 1)] - arc[k]))
 
 
 def _attachments(sk: Skeleton) -> tuple[list[list[float]], list[float]]:
@@ -49,7 +47,7 @@ def _attachments(sk: Skeleton) -> tuple[list[list[float]], list[float]]:
     position on its parent."""
     on: list[list[float]] = [[] for _ in sk.branches]
     at: list[float] = [0.0] * len(sk.branches)
-    arcs = [_arc(b.points) for b in sk.branches]
+    arcs = [arc_length(b.points) for b in sk.branches]
     for i, b in enumerate(sk.branches):
         p = b.parent
         if p < 0:
@@ -69,7 +67,7 @@ def tip_paths(sk: Skeleton, back_to: str = "fork") -> list[tuple[Array, Array, f
     (`"permanent"`: the trunk or a cordon): (points from there to the tip, starting on the
     parent's axis; their radii; the radius of the wood it leaves; the tip's branch)."""
     on, at = _attachments(sk)
-    arcs = [_arc(b.points) for b in sk.branches]
+    arcs = [arc_length(b.points) for b in sk.branches]
     out = []
     for i, b in enumerate(sk.branches):
         L = arcs[i][-1]
@@ -127,7 +125,7 @@ def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[Cut
     for P, R, fork_r, branch in tip_paths(sk, "permanent" if vine else "fork"):
         if sk.branches[branch].parent < 0:
             continue  # the trunk's own top
-        s = _arc(P)
+        s = arc_length(P)
         want = fork_r + offset
         # straight-line distance from the fork: a noisy centre line's wiggles lengthen its arc
         reach = np.maximum.accumulate(np.linalg.norm(P - P[0], axis=1))

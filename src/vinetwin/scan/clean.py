@@ -110,7 +110,6 @@ def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generato
             break
         s0 = np.floor(along / 0.05).astype(np.int64)
         wide = off <= 0.03
-        thin_slice = np.zeros(0, bool)
         lo = s0[wide].min()
         n_in = np.bincount(s0[inl] - lo, minlength=s0[wide].max() - lo + 1)
         n_wide = np.bincount(s0[wide] - lo, minlength=len(n_in))

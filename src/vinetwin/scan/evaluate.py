@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates, tip_paths
 from vinetwin.scan.config import PlantKind
-from vinetwin.twin.skeleton import Skeleton
+from vinetwin.twin.skeleton import Skeleton, arc_length
 
 #: Tip paths shorter than this (m) are stubs, not canes, for the "canes lost" count.
 MIN_CANE = 0.06
@@ -41,7 +41,7 @@ def sample_skeleton(sk: Skeleton, step: float = 0.002) -> tuple[Array, Array]:
 
 
 def _resample(P: Array, R: Array, step: float) -> tuple[Array, Array]:
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    s = arc_length(P)
     n = max(2, int(np.ceil(s[-1] / step)) + 1)
     q = np.linspace(0, s[-1], n)
     return np.column_stack([np.interp(q, s, P[:, d]) for d in range(3)]), np.interp(q, s, R)

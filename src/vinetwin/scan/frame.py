@@ -9,7 +9,7 @@ import numpy as np
 
 from vinetwin.errors import InputError
 from vinetwin.frames import Array
-from vinetwin.twin.skeleton import Skeleton
+from vinetwin.twin.skeleton import Skeleton, arc_length
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -96,7 +96,7 @@ def split_trunk(sk: Skeleton, up: Array) -> None:
     P = b.points
     if len(P) < 6:
         return
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    s = arc_length(P)
     h = (P - P[0]) @ up
     for k in range(2, len(P) - 2):
         t = P[min(k + 3, len(P) - 1)] - P[max(k - 3, 0)]
@@ -134,7 +134,7 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
         if b.parent not in roots:
             continue
         P = b.points
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+        s = arc_length(P)
         k_split = None
         for k in range(1, len(P) - 1):
             t = P[min(k + 3, len(P) - 1)] - P[max(k - 3, 0)]

@@ -203,9 +203,6 @@ def _read_e57(path: Path) -> ScanData:
     return data
 
 
-_HEADER_XYZ = re.compile(r"^(x|y|z|//x|//X)$", re.I)
-
-
 def _delimiter(line: str) -> str | None:
     for d in (",", ";", "\t"):
         if d in line:

@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 from vinetwin.errors import ScanError
 from vinetwin.frames import Array
 from vinetwin.scan.config import SkeletonConfig
-from vinetwin.twin.skeleton import Branch, Skeleton
+from vinetwin.twin.skeleton import Branch, Skeleton, nearest_on_polyline
 
 
 @dataclass
@@ -325,7 +325,8 @@ class _LevelTree:
                 parent = index[pchain]
                 ppts = sk.branches[parent].points
                 pprad = sk.branches[parent].radii
-                start, r_at = _project_on_polyline(pts[0], ppts, pprad)
+                k, t, start = nearest_on_polyline(pts[0], ppts)
+                r_at = float(pprad[k] + t * (pprad[min(k + 1, len(pprad) - 1)] - pprad[k]))
                 if np.linalg.norm(start - pts[0]) > 1e-6:
                     pts = np.vstack([start, pts])
                     rad = np.concatenate([[min(rad[0], r_at)], rad])
@@ -410,18 +411,6 @@ def _continue_with(sk: Skeleton, i: int, k: int, c: int) -> None:
     _drop(sk, c)
 
 
-def _project_on_polyline(p: Array, pts: Array, radii: Array) -> tuple[Array, float]:
-    """The point of the polyline nearest p, and the radius there."""
-    if len(pts) == 1:
-        return pts[0], float(radii[0])
-    a, b = pts[:-1], pts[1:]
-    ab = b - a
-    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum((ab * ab).sum(1), 1e-18), 0, 1)
-    q = a + t[:, None] * ab
-    k = int(np.argmin(np.linalg.norm(q - p, axis=1)))
-    return q[k], float(radii[k] + t[k] * (radii[k + 1] - radii[k]))
-
-
 def _level_tree(
     P: Array,
     g: sparse.csr_matrix,
@@ -487,7 +476,7 @@ def _level_tree(
             for k in kids[c]:
                 if k != main and reach[k] - geo_max[c] < cfg.min_branch + rough_r[c]:
                     alive[k] = False
-    # a dropped cluster drops its subtree; its points join the junction
+    # a dropped cluster drops its subtree
     for c in np.argsort(geo_min):
         if parent[c] >= 0 and not alive[parent[c]]:
             alive[c] = False

@@ -27,7 +27,7 @@ import numpy as np
 
 from vinetwin.errors import InputError
 from vinetwin.frames import Array
-from vinetwin.twin.skeleton import Branch, CutCandidate, Skeleton
+from vinetwin.twin.skeleton import Branch, CutCandidate, Skeleton, arc_length
 
 if TYPE_CHECKING:
     from vinetwin.twin.model import Twin
@@ -94,10 +94,6 @@ def _unit(v: Array) -> Array:
     return v / np.linalg.norm(v)
 
 
-def _arc_length(points: Array) -> Array:
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
-
-
 def _cane(
     rng: np.random.Generator,
     p: VineParams,
@@ -109,7 +105,7 @@ def _cane(
     length = rng.uniform(*p.cane_length)
     goal = _unit(np.asarray(direction, dtype=np.float64) * [0.6, 0.6, 1.0])
     pts = _wander(rng, start, direction, length, p.step, lambda _: goal, pull=4.0, wobble=0.9)
-    s = _arc_length(pts)
+    s = arc_length(pts)
     d0 = rng.uniform(*p.cane_diameter)
     r = 0.5 * d0 * (1.0 - 0.45 * s / s[-1])
     # nodes: swellings with a bud, every internode
@@ -144,7 +140,7 @@ def generate_vine(seed: int = 0, params: VineParams | None = None) -> Skeleton:
     d_trunk = rng.uniform(*p.trunk_diameter)
     lean = _unit(np.array([rng.normal(0, 0.05), rng.normal(0, 0.05), 1.0]))
     trunk = _wander(rng, np.zeros(3), lean, height, p.step, lambda _: lean, pull=10.0, wobble=0.4)
-    s = _arc_length(trunk)
+    s = arc_length(trunk)
     r = 0.5 * d_trunk * (1.0 - 0.15 * s / s[-1]) * (1.0 + 0.35 * np.exp(-s / 0.05))
     r = r * (1.0 + 0.05 * np.sin(s * rng.uniform(20, 40) + rng.uniform(0, 6)))
     sk.branches.append(Branch(trunk, r, kind="trunk", label="trunk"))
@@ -162,7 +158,7 @@ def generate_vine(seed: int = 0, params: VineParams | None = None) -> Skeleton:
 
         start_dir = trunk[-1] - trunk[-4]
         cordon = _wander(rng, top, start_dir, length + 0.05, p.step, along_wire, 30.0, 0.4)
-        cs = _arc_length(cordon)
+        cs = arc_length(cordon)
         d_cordon = min(rng.uniform(0.018, 0.030), d_trunk)
         cr = 0.5 * d_cordon * (1.0 - 0.35 * cs / cs[-1])
         cordon_index = len(sk.branches)
@@ -190,7 +186,7 @@ def generate_vine(seed: int = 0, params: VineParams | None = None) -> Skeleton:
                 sk.branches.append(cane)
                 if len(nodes) >= 3:
                     s2, s3 = nodes[1][0], nodes[2][0]
-                    cs_ = _arc_length(cane.points)
+                    cs_ = arc_length(cane.points)
                     k = int(np.searchsorted(cs_, s2 + 0.3 * (s3 - s2)))
                     k = min(max(k, 1), len(cs_) - 2)
                     axis = cane.points[k + 1] - cane.points[k - 1]

@@ -27,7 +27,13 @@ import numpy as np
 
 from vinetwin.errors import ImportFormatError
 from vinetwin.frames import Array
-from vinetwin.twin.skeleton import Branch, BranchKind, CutCandidate, Skeleton
+from vinetwin.twin.skeleton import (
+    Branch,
+    BranchKind,
+    CutCandidate,
+    Skeleton,
+    nearest_on_polyline,
+)
 
 if TYPE_CHECKING:
     from vinetwin.twin.model import Twin
@@ -391,7 +397,7 @@ def _cylinder_candidates(sk: Skeleton) -> None:
         for o, other in enumerate(sk.branches):
             if o == idx:
                 continue
-            d = _distance_to_polyline(base, other.points)
+            d = float(np.linalg.norm(nearest_on_polyline(base, other.points)[2] - base))
             if d < best_d:
                 best, best_d = o, d
         if best < 0 or best_d > 2 * max(float(b.radii[0]), 1e-3) + 1e-3:
@@ -411,13 +417,6 @@ def _cylinder_candidates(sk: Skeleton) -> None:
         sk.candidates.append(
             CutCandidate(point, axis, branch=idx, radius=float(b.radii[m]), label=b.label)
         )
-
-
-def _distance_to_polyline(p: Array, pts: Array) -> float:
-    a, b = pts[:-1], pts[1:]
-    ab = b - a
-    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum((ab * ab).sum(1), 1e-18), 0, 1)
-    return float(np.min(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
 
 
 def import_twin(

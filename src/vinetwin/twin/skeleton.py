@@ -135,6 +135,24 @@ class Skeleton:
         return cls.from_json(json.loads(Path(path).read_text()))
 
 
+# ---------------------------------------------------------------------------- polylines
+def arc_length(points: Array) -> Array:
+    """(N,) distance along a polyline (N, 3) from its first point."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+
+
+def nearest_on_polyline(p: Array, pts: Array) -> tuple[int, float, Array]:
+    """The point of the polyline `pts` nearest p: its segment k, the fraction t along it, and
+    the point (a one-point polyline: segment 0, t 0)."""
+    if len(pts) == 1:
+        return 0, 0.0, pts[0]
+    a, ab = pts[:-1], np.diff(pts, axis=0)
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum((ab * ab).sum(1), 1e-18), 0, 1)
+    q = a + t[:, None] * ab
+    k = int(np.argmin(np.linalg.norm(q - p, axis=1)))
+    return k, float(t[k]), q[k]
+
+
 # ---------------------------------------------------------------------------- tube meshes
 def _rotation_minimizing_frames(points: Array, tangents: Array) -> Array:
     """Normals (N, 3) of a rotation-minimising frame along a curve (double reflection)."""
