@@ -23,97 +23,16 @@ from __future__ import annotations
 import numpy as np
 
 from vinetwin.frames import Array
-from vinetwin.scan.config import FIRST_NODE, PlantKind
+from vinetwin.scan.config import PlantKind
 from vinetwin.twin.importers import CANDIDATE_OFFSET
 from vinetwin.twin.skeleton import (
+    FIRST_NODE,
     BranchKind,
     CutCandidate,
     Skeleton,
     arc_length,
-    nearest_on_polyline,
+    tip_paths,
 )
-
-_EPS = 1e-3  # m: a child starting this close to its parent's end continues it
-
-
-def _arc_of_nearest(p: Array, pts: Array, arc: Array) -> float:
-    """Arc position of the point of the polyline `pts` nearest p."""
-    k, t, _ = nearest_on_polyline(p, pts)
-    return float(arc[k] + t * (arc[min(k + 1, len(arc) - 1)] - arc[k]))
-
-
-def _attachments(sk: Skeleton) -> tuple[list[list[float]], list[float]]:
-    """For each branch, the arc positions on it where children start; and each branch's
-    position on its parent."""
-    on: list[list[float]] = [[] for _ in sk.branches]
-    at: list[float] = [0.0] * len(sk.branches)
-    arcs = [arc_length(b.points) for b in sk.branches]
-    for i, b in enumerate(sk.branches):
-        p = b.parent
-        if p < 0:
-            continue
-        at[i] = _arc_of_nearest(b.points[0], sk.branches[p].points, arcs[p])
-        on[p].append(at[i])
-    return on, at
-
-
-PERMANENT: tuple[BranchKind, ...] = ("trunk", "cordon")
-"""A vine's permanent wood: cuts are never proposed on it, and a cane's path is followed back
-to it."""
-
-
-def tip_paths(sk: Skeleton, back_to: str = "fork") -> list[tuple[Array, Array, float, int]]:
-    """Each tip's path back to its last fork (`back_to="fork"`) or to the permanent wood
-    (`"permanent"`: the trunk or a cordon): (points from there to the tip, starting on the
-    parent's axis; their radii; the radius of the wood it leaves; the tip's branch)."""
-    on, at = _attachments(sk)
-    arcs = [arc_length(b.points) for b in sk.branches]
-    out = []
-    for i, b in enumerate(sk.branches):
-        L = arcs[i][-1]
-        if any(s >= L - _EPS for s in on[i]):
-            continue  # something grows from its end: not a tip
-        if back_to == "permanent" and (b.kind in PERMANENT or b.parent < 0):
-            continue
-        pieces_p, pieces_r = [], []
-        cur, pos = i, L
-        fork_r = 0.0
-        while True:
-            s = arcs[cur]
-            forks = [x for x in on[cur] if x < pos - _EPS] if back_to == "fork" else []
-            lo = max(forks) if forks else 0.0
-            keep = (s > lo) & (s <= pos + 1e-12)
-            pts = sk.branches[cur].points
-            rad = sk.branches[cur].radii
-            p_lo = np.array([np.interp(lo, s, pts[:, d]) for d in range(3)])
-            pieces_p.insert(0, np.vstack([p_lo, pts[keep]]))
-            pieces_r.insert(0, np.concatenate([[np.interp(lo, s, rad)], rad[keep]]))
-            if forks:
-                fork_r = float(np.interp(lo, s, rad))
-                break
-            par = sk.branches[cur].parent
-            if par < 0:
-                break
-            ppos = at[cur]
-            if back_to == "fork":
-                stop = not (ppos >= arcs[par][-1] - _EPS
-                            and sum(1 for x in on[par] if x >= arcs[par][-1] - _EPS) == 1)  # fmt: skip
-            else:
-                stop = sk.branches[par].kind in PERMANENT or sk.branches[par].parent < 0
-            if stop:  # the path starts where it leaves its parent, on the parent's axis
-                pp = sk.branches[par].points
-                fork_r = float(np.interp(ppos, arcs[par], sk.branches[par].radii))
-                axis_pt = np.array([np.interp(ppos, arcs[par], pp[:, d]) for d in range(3)])
-                pieces_p.insert(0, axis_pt[None, :])
-                pieces_r.insert(0, np.array([fork_r]))
-                break
-            cur, pos = par, ppos
-        P = np.vstack(pieces_p)
-        R = np.concatenate(pieces_r)
-        keep = np.ones(len(P), bool)
-        keep[1:] = np.linalg.norm(np.diff(P, axis=0), axis=1) > 1e-9
-        out.append((P[keep], R[keep], fork_r, i))
-    return out
 
 
 def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[CutCandidate]:

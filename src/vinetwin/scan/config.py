@@ -10,6 +10,8 @@ from typing import Literal
 
 from vinetwin._config import check_counts, check_finite
 from vinetwin.errors import InputError
+from vinetwin.twin.skeleton import DEFAULT_INTERNODE as DEFAULT_INTERNODE  # declared there
+from vinetwin.twin.skeleton import FIRST_NODE as FIRST_NODE
 
 Units = Literal["auto", "m", "cm", "mm", "in", "ft"]
 UpAxis = Literal["auto", "x", "y", "z", "-x", "-y", "-z"]
@@ -77,14 +79,6 @@ class SkeletonConfig:
         for name, hi in (("voxel", 0.05), ("bin", 0.2), ("gap", 0.2), ("min_branch", 0.5)):
             if getattr(self, name) > hi:
                 raise InputError(f"{name} {getattr(self, name):g} m is above {hi:g} m: no plant")
-
-
-#: Distance (m) between nodes (buds) of a dormant cane when the skeleton does not know them
-#: (a scan): 5-9 cm on the generator's canes, 6-10 cm on the hydroshoot vines of
-#: `../shared/data` (median 7.3 cm over their shoots).
-DEFAULT_INTERNODE = 0.07
-#: Where the first node sits on a cane, from its base (m): the generator's 1-2.5 cm.
-FIRST_NODE = 0.0175
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -22,9 +22,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vinetwin.frames import Array
-from vinetwin.scan.candidates import cut_candidates, tip_paths
+from vinetwin.scan.candidates import cut_candidates
 from vinetwin.scan.config import PlantKind
-from vinetwin.twin.skeleton import Skeleton, arc_length
+from vinetwin.twin.skeleton import Skeleton, arc_length, tip_paths
 
 #: Tip paths shorter than this (m) are stubs, not canes, for the "canes lost" count.
 MIN_CANE = 0.06

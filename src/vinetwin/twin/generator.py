@@ -126,7 +126,8 @@ def _cane(
         i = int(np.searchsorted(s, z))
         i = min(i, len(s) - 1)
         node_info.append((z, pts[i], tangents[i]))
-    return Branch(pts, r, kind="cane", label=f"cane{index}"), node_info
+    branch = Branch(pts, r, kind="cane", label=f"cane{index}", nodes=np.array(nodes))
+    return branch, node_info
 
 
 def generate_vine(seed: int = 0, params: VineParams | None = None) -> Skeleton:

@@ -32,6 +32,7 @@ from vinetwin.twin.skeleton import (
     BranchKind,
     CutCandidate,
     Skeleton,
+    arc_length,
     nearest_on_polyline,
 )
 
@@ -232,9 +233,11 @@ def read_hydroshoot(path: str | Path) -> Skeleton:
                 continue
             pts.append(m.xyz)
             diams.append(m.diameter)
+        first_node = 0  # the axis's own rows are its nodes; a start hung from the parent is not
         if start is not None and np.linalg.norm(start - pts[0]) > 1e-9:
             pts = [start, *pts]
             diams = [diams[0], *diams]
+            first_node = 1
         label = "/".join(key[1:]) if len(key) > 1 else kind
         bkind: BranchKind = {"main": "trunk" if key == trunk_key else "cordon"}.get(kind, kind)  # type: ignore[assignment]
         if all(d is not None for d in diams):
@@ -247,9 +250,9 @@ def read_hydroshoot(path: str | Path) -> Skeleton:
             pts = [pts[0], pts[0] + np.array([0, 0, 2 * radii[0] + 1e-3])]
             radii = np.repeat(radii[:1], 2)
         branch_of[key] = len(sk.branches)
-        sk.branches.append(
-            Branch(np.asarray(pts), np.asarray(radii), kind=bkind, parent=parent_idx, label=label)
-        )
+        nodes = arc_length(np.asarray(pts))[first_node:] if bkind in ("shoot", "cane") else []
+        sk.branches.append(Branch(np.asarray(pts), np.asarray(radii), kind=bkind,
+                                  parent=parent_idx, label=label, nodes=np.asarray(nodes)))  # fmt: skip
         placed.append(np.asarray(pts))
 
     order = {"main": 0, "spur": 1, "cane": 2, "shoot": 3}

@@ -33,10 +33,16 @@ class Branch:
     """Index of the branch this one grows from (-1 for a root)."""
     label: str = ""
     """Free text, e.g. the source's key for imported axes."""
+    nodes: Array = field(default_factory=lambda: np.zeros(0))
+    """Arc positions (m, from the first point) of the nodes (buds) where the source knows them
+    (the generator's canes, hydroshoot's shoots); empty when unknown (a scan)."""
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
         self.radii = np.asarray(self.radii, dtype=np.float64).reshape(-1)
+        self.nodes = np.sort(np.asarray(self.nodes, dtype=np.float64).reshape(-1))
+        if not np.all(np.isfinite(self.nodes)):
+            raise InputError(f"branch '{self.label}': non-finite node position")
         if self.points.shape[0] != self.radii.shape[0]:
             raise InputError(
                 f"branch '{self.label}': {self.points.shape[0]} points but {self.radii.shape[0]} radii"
@@ -88,6 +94,7 @@ class Skeleton:
                     "label": b.label,
                     "points": np.round(b.points, 6).tolist(),
                     "radii": np.round(b.radii, 6).tolist(),
+                    **({"nodes": np.round(b.nodes, 6).tolist()} if len(b.nodes) else {}),
                 }
                 for b in self.branches
             ],
@@ -112,6 +119,7 @@ class Skeleton:
                 kind=b.get("kind", "branch"),
                 parent=int(b.get("parent", -1)),
                 label=str(b.get("label", "")),
+                nodes=np.asarray(b.get("nodes", []), dtype=np.float64),
             )
             for b in data.get("branches", [])
         ]
@@ -151,6 +159,98 @@ def nearest_on_polyline(p: Array, pts: Array) -> tuple[int, float, Array]:
     q = a + t[:, None] * ab
     k = int(np.argmin(np.linalg.norm(q - p, axis=1)))
     return k, float(t[k]), q[k]
+
+
+#: Distance (m) between nodes (buds) of a dormant cane when the skeleton does not know them
+#: (a scan): 5-9 cm on the generator's canes, 6-10 cm on the hydroshoot vines of
+#: `../shared/data` (median 7.3 cm over their shoots).
+DEFAULT_INTERNODE = 0.07
+#: Where the first node sits on a cane, from its base (m): the generator's 1-2.5 cm.
+FIRST_NODE = 0.0175
+
+
+# ---------------------------------------------------------------------------- tips and paths
+_EPS = 1e-3  # m: a child starting this close to its parent's end continues it
+
+
+def _arc_of_nearest(p: Array, pts: Array, arc: Array) -> float:
+    """Arc position of the point of the polyline `pts` nearest p."""
+    k, t, _ = nearest_on_polyline(p, pts)
+    return float(arc[k] + t * (arc[min(k + 1, len(arc) - 1)] - arc[k]))
+
+
+def _attachments(sk: Skeleton) -> tuple[list[list[float]], list[float]]:
+    """For each branch, the arc positions on it where children start; and each branch's
+    position on its parent."""
+    on: list[list[float]] = [[] for _ in sk.branches]
+    at: list[float] = [0.0] * len(sk.branches)
+    arcs = [arc_length(b.points) for b in sk.branches]
+    for i, b in enumerate(sk.branches):
+        p = b.parent
+        if p < 0:
+            continue
+        at[i] = _arc_of_nearest(b.points[0], sk.branches[p].points, arcs[p])
+        on[p].append(at[i])
+    return on, at
+
+
+PERMANENT: tuple[BranchKind, ...] = ("trunk", "cordon")
+"""A vine's permanent wood: cuts are never proposed on it, and a cane's path is followed back
+to it."""
+
+
+def tip_paths(sk: Skeleton, back_to: str = "fork") -> list[tuple[Array, Array, float, int]]:
+    """Each tip's path back to its last fork (`back_to="fork"`) or to the permanent wood
+    (`"permanent"`: the trunk or a cordon): (points from there to the tip, starting on the
+    parent's axis; their radii; the radius of the wood it leaves; the tip's branch)."""
+    on, at = _attachments(sk)
+    arcs = [arc_length(b.points) for b in sk.branches]
+    out = []
+    for i, b in enumerate(sk.branches):
+        L = arcs[i][-1]
+        if any(s >= L - _EPS for s in on[i]):
+            continue  # something grows from its end: not a tip
+        if back_to == "permanent" and (b.kind in PERMANENT or b.parent < 0):
+            continue
+        pieces_p, pieces_r = [], []
+        cur, pos = i, L
+        fork_r = 0.0
+        while True:
+            s = arcs[cur]
+            forks = [x for x in on[cur] if x < pos - _EPS] if back_to == "fork" else []
+            lo = max(forks) if forks else 0.0
+            keep = (s > lo) & (s <= pos + 1e-12)
+            pts = sk.branches[cur].points
+            rad = sk.branches[cur].radii
+            p_lo = np.array([np.interp(lo, s, pts[:, d]) for d in range(3)])
+            pieces_p.insert(0, np.vstack([p_lo, pts[keep]]))
+            pieces_r.insert(0, np.concatenate([[np.interp(lo, s, rad)], rad[keep]]))
+            if forks:
+                fork_r = float(np.interp(lo, s, rad))
+                break
+            par = sk.branches[cur].parent
+            if par < 0:
+                break
+            ppos = at[cur]
+            if back_to == "fork":
+                stop = not (ppos >= arcs[par][-1] - _EPS
+                            and sum(1 for x in on[par] if x >= arcs[par][-1] - _EPS) == 1)  # fmt: skip
+            else:
+                stop = sk.branches[par].kind in PERMANENT or sk.branches[par].parent < 0
+            if stop:  # the path starts where it leaves its parent, on the parent's axis
+                pp = sk.branches[par].points
+                fork_r = float(np.interp(ppos, arcs[par], sk.branches[par].radii))
+                axis_pt = np.array([np.interp(ppos, arcs[par], pp[:, d]) for d in range(3)])
+                pieces_p.insert(0, axis_pt[None, :])
+                pieces_r.insert(0, np.array([fork_r]))
+                break
+            cur, pos = par, ppos
+        P = np.vstack(pieces_p)
+        R = np.concatenate(pieces_r)
+        keep = np.ones(len(P), bool)
+        keep[1:] = np.linalg.norm(np.diff(P, axis=0), axis=1) > 1e-9
+        out.append((P[keep], R[keep], fork_r, i))
+    return out
 
 
 # ---------------------------------------------------------------------------- tube meshes

@@ -1,0 +1,177 @@
+"""Proposals written into a twin, and their review.
+
+`propose` applies a rule (`rules`) to the twin's skeleton, searches a pose for each cut
+(`search`) and adds each cut as a cut point with `source="proposal"`, its record under the cut
+point's `proposal` field (rule, action, reason, status "proposed", the pose's scores or why it
+has none, and the default approach's scores), and its pose when one was found. A person accepts
+a proposal (status "accepted": from then on it is theirs, and `--replace` keeps it) or rejects
+it (the cut point and its pose are deleted). Re-running never duplicates a cut: a proposal
+within `SAME_CUT` of a cut point already there is not added; `replace` first removes the
+proposals still "proposed", never a person's own cuts or accepted ones.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin.errors import InputError, TwinError
+from vinetwin.files import atomic_write_text
+from vinetwin.propose.config import ProposeConfig
+from vinetwin.propose.rules import propose_cuts
+from vinetwin.propose.search import VineObstacles, search_pose
+from vinetwin.twin.model import CutPoint, Twin
+
+#: A proposal this close (m) to a cut point already in the twin is that cut.
+SAME_CUT = 0.01
+
+
+def is_proposal(cut: CutPoint, status: str | None = None) -> bool:
+    """Whether a cut point came from `propose` (and, when given, has that status)."""
+    rec = cut.extra.get("proposal")
+    return isinstance(rec, dict) and (status is None or rec.get("status") == status)
+
+
+@dataclass
+class ProposeResult:
+    """What one `propose` did."""
+
+    rule: str
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    """One per proposed cut: id, action, reason, pose (found or why not), scores."""
+    already: int = 0
+    """Proposals not added: a cut point was already there."""
+    replaced: int = 0
+    """Earlier proposals removed (`replace`)."""
+    seconds: float = 0.0
+
+    def counts(self) -> dict[str, int]:
+        posed = sum(r["pose"] == "found" for r in self.rows)
+        return {"proposed": len(self.rows), "with_pose": posed, "without_pose": len(self.rows) - posed,
+                "already_there": self.already, "replaced": self.replaced}  # fmt: skip
+
+    def to_json(self) -> dict[str, Any]:
+        return {"rule": self.rule, "counts": self.counts(), "seconds": round(self.seconds, 2),
+                "cuts": self.rows}  # fmt: skip
+
+    def markdown(self) -> str:
+        c = self.counts()
+        lines = [
+            f"{c['proposed']} cuts proposed by the {self.rule} rule, {c['with_pose']} with a "
+            f"pose ({self.seconds:.1f} s); {c['already_there']} already there, "
+            f"{c['replaced']} earlier proposals replaced.",
+            "",
+            "| cut | action | reason | pose | clearance mm | cane seen | points | default clearance mm |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for r in self.rows:
+            s, d = r.get("search") or {}, r["default"]
+            lines.append(
+                f"| {r['id']} | {r['action']} | {r['reason']} | {r['pose']} | "
+                f"{s.get('clearance_m', float('nan')) * 1000:.1f} | {s.get('visible', 0):.0%} | "
+                f"{s.get('points', 0)} | {d['clearance_m'] * 1000:.1f} |"
+            )
+        return "\n".join(lines)
+
+
+def _require_skeleton(twin: Twin) -> Any:
+    sk = twin.load_skeleton()
+    if sk is None or not sk.branches:
+        raise TwinError(
+            f"twin '{twin.name}' has no skeleton, which the pruning rules need: make the twin "
+            "with `vinetwin import-scan` (a scan), `vinetwin import-vine` (a digitised plant) "
+            "or `vinetwin sample`"
+        )
+    return sk
+
+
+def propose(
+    twin: Twin,
+    cfg: ProposeConfig | None = None,
+    *,
+    obstacles: VineObstacles | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> ProposeResult:
+    """Proposes cuts on the twin by `cfg.rule`, each with a searched pose, and saves the twin."""
+    cfg = cfg or ProposeConfig()
+    t0 = time.perf_counter()
+    sk = _require_skeleton(twin)
+    proposals = propose_cuts(sk, cfg.rule)
+    result = ProposeResult(cfg.rule.rule)
+    if cfg.replace:
+        for cut in [c for c in twin.cut_points if is_proposal(c, "proposed")]:
+            twin.delete_cut_point(cut.id)
+            result.replaced += 1
+    if obstacles is None:
+        mesh = twin.load_mesh()
+        obstacles = VineObstacles(np.asarray(mesh.vertices), np.asarray(mesh.faces), twin.camera)
+    settings = cfg.to_dict()
+    for k, p in enumerate(proposals):
+        if progress:
+            progress(k, len(proposals))
+        if any(np.linalg.norm(c.point - p.point) < SAME_CUT for c in twin.cut_points):
+            result.already += 1
+            continue
+        found = search_pose(obstacles, p.point, p.cane_axis, p.cane, p.radius, cfg.search)
+        cut = twin.add_cut_point(p.point, p.cane_axis, name=f"{p.label} {p.action}",
+                                 source="proposal")  # fmt: skip
+        rec: dict[str, Any] = {
+            "status": "proposed", "rule": cfg.rule.rule, **p.to_json(),
+            "pose": "found" if found.best else found.reason,
+            "default": found.default.summary(), "tried": found.tried,
+        }  # fmt: skip
+        row = {"id": cut.id, **rec}
+        if found.best is not None:
+            pose = twin.add_pose(cut.id, found.best.approach, name=f"{cut.id} {p.label}")
+            pose.extra["search"] = found.best.summary()
+            rec["search"] = row["search"] = found.best.summary()
+            row["pose_id"] = pose.id
+        cut.extra["proposal"] = rec
+        result.rows.append(row)
+    twin.extra["proposal_settings"] = settings
+    twin.save()
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+def review(twin: Twin, accept: bool, cut_ids: list[str] | None = None) -> list[str]:
+    """Accepts (status "accepted") or rejects (deletes, with their poses) the given proposals,
+    or every one still "proposed" when `cut_ids` is None; returns the ids changed. Does not save."""
+    todo = (
+        [c for c in twin.cut_points if is_proposal(c, "proposed")]
+        if cut_ids is None
+        else [twin.cut_point(i) for i in cut_ids]
+    )
+    for c in todo:
+        if not is_proposal(c):
+            raise InputError(f"cut point {c.id} is not a proposal (a person's own cut)")
+    for c in todo:
+        if accept:
+            c.extra["proposal"] = {**c.extra["proposal"], "status": "accepted"}
+        else:
+            twin.delete_cut_point(c.id)
+    return [c.id for c in todo]
+
+
+def propose_folder(
+    path: str | Path,
+    cfg: ProposeConfig,
+    *,
+    json_path: Path | None = None,
+    echo: Callable[[str], None] | None = None,
+) -> ProposeResult:
+    """`vinetwin propose`: proposes on the twin at `path`, prints the table, writes the JSON."""
+    twin = Twin.load(path)
+    result = propose(twin, cfg)
+    if echo is not None:
+        echo(result.markdown())
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(json_path, json.dumps(result.to_json(), indent=1))
+    return result

@@ -1,0 +1,361 @@
+"""Pruning rules on a skeleton: which canes are shortened, which are removed, and where each cut
+sits, with the reason.
+
+The rules are defined on the plant's shape, not on how its branches happen to be split into
+polylines, so that they give the same cuts on a scan's skeleton and on the true skeleton of the
+same vine:
+
+- a **shoot** is a tip's path back to the permanent wood (trunk, cordons; for a tree, the tip's
+  last fork), `twin.skeleton.tip_paths`;
+- shoots leaving the permanent wood within `spur_radius` of each other form one **spur**;
+- within a spur each shoot **parts** from the others where its axis is first clear of theirs
+  (their surfaces `PART_GAP` apart); a shoot parting from a much thicker one
+  (radius below `LATERAL_RATIO` of it) is a side shoot of that cane and goes with it;
+- **buds**: the skeleton's nodes where it knows them (the generator's canes, hydroshoot's
+  shoots), else every `internode` from the permanent wood's surface, the first `FIRST_NODE` out;
+  a cane is shortened to N buds 30% of the way from bud N to bud N+1 (the generator's and the
+  importers' candidates sit there for N = 2);
+- a cane **removed** is cut where it parts from what stays (the kept cane, or the permanent
+  wood when its whole spur goes): one cut removes a whole spur.
+
+Spur pruning (`rule="spur"`): in each spur the best-placed cane (the most upright over its first
+10 cm, then the thickest) is shortened to `buds` buds, the others are removed. Cane pruning
+(`rule="cane"`): the `canes` best canes of the spurs nearest the head (the trunk's top) keep
+`cane_buds` buds, the best cane of the next spur is a renewal spur of `buds` buds, everything
+else is removed at the permanent wood.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vinetwin.errors import InputError
+from vinetwin.frames import Array
+from vinetwin.propose.config import RuleConfig
+from vinetwin.twin.skeleton import (
+    FIRST_NODE,
+    PERMANENT,
+    Skeleton,
+    arc_length,
+    nearest_on_polyline,
+    tip_paths,
+)
+
+#: Two axes part where their surfaces are this far apart (m).
+PART_GAP = 0.005
+#: A shoot parting from one more than 1 / this times thicker is its side shoot.
+LATERAL_RATIO = 0.4
+#: A shoot shorter than this past the permanent wood (m) is noise at a junction.
+MIN_SHOOT = 0.03
+#: The cut sits this share of the way from the last kept bud to the next.
+BETWEEN_BUDS = 0.3
+#: Half the length of cane (m) around a cut whose visibility the pose search scores.
+CANE_WINDOW = 0.05
+
+
+@dataclass
+class Shoot:
+    """One-year wood: a tip's path from the permanent wood (or its last fork)."""
+
+    points: Array
+    radii: Array
+    wood_radius: float
+    """Radius of the permanent wood it leaves."""
+    branch: int
+    """The skeleton branch of its tip."""
+    label: str
+    arc: Array = field(init=False)
+    reach: Array = field(init=False)
+    """Straight-line distance from its first point, never decreasing."""
+    spur: int = -1
+    part: int = 0
+    """Index of the point where it parts from the other shoots of its spur."""
+    side_of: int = -1
+    """For a side shoot: the shoot it grows on."""
+    buds: Array = field(default_factory=lambda: np.zeros(0))
+    """Arc positions of its buds."""
+
+    def __post_init__(self) -> None:
+        self.arc = arc_length(self.points)
+        self.reach = np.maximum.accumulate(np.linalg.norm(self.points - self.points[0], axis=1))
+
+    def at(self, s: float) -> tuple[Array, Array, float]:
+        """Point, unit axis and radius at arc position s."""
+        P, a = self.points, self.arc
+        p = np.array([np.interp(s, a, P[:, d]) for d in range(3)])
+        k = int(np.clip(np.searchsorted(a, s), 1, len(P) - 1))
+        lo, hi = max(k - 2, 0), min(k + 2, len(P) - 1)
+        axis = P[hi] - P[lo]
+        axis /= max(float(np.linalg.norm(axis)), 1e-12)
+        return p, axis, float(np.interp(s, a, self.radii))
+
+    def window(self, s: float) -> Array:
+        """The shoot's centre points within `CANE_WINDOW` of arc position s."""
+        keep = np.abs(self.arc - s) <= CANE_WINDOW
+        return self.points[keep] if keep.any() else self.at(s)[0][None]
+
+
+@dataclass
+class Proposal:
+    """One proposed cut."""
+
+    point: Array
+    cane_axis: Array
+    radius: float
+    action: str
+    """"shorten" or "remove"."""
+    reason: str
+    label: str
+    cane: Array
+    """The cut cane's centre points near the cut (what the camera should see)."""
+    branch: int
+
+    def to_json(self) -> dict[str, object]:
+        return {"action": self.action, "reason": self.reason, "label": self.label,
+                "radius": round(self.radius, 5)}  # fmt: skip
+
+
+#: Kinds that only a vine's skeleton has: its cuts are counted from the permanent wood; on a tree
+#: (branches only) from each tip's last fork.
+_VINE_KINDS = {"cordon", "spur", "cane", "shoot"}
+
+
+def _vine(sk: Skeleton) -> bool:
+    return any(b.kind in _VINE_KINDS for b in sk.branches)
+
+
+def shoots(sk: Skeleton) -> list[Shoot]:
+    """The skeleton's shoots (see the module's docstring), junction noise left out."""
+    if not sk.branches:
+        raise InputError("the skeleton has no branches")
+    back_to = "permanent" if _vine(sk) else "fork"
+    out = []
+    for P, R, wood_r, b in tip_paths(sk, back_to):
+        if sk.branches[b].parent < 0 or len(P) < 2:
+            continue
+        s = Shoot(P, R, wood_r, b, sk.branches[b].label or f"branch{b}")
+        if s.reach[-1] - wood_r < MIN_SHOOT:
+            continue
+        out.append(s)
+    return out
+
+
+def _group(shoots_: list[Shoot], radius: float) -> list[list[int]]:
+    """Spurs: single-linkage groups of shoots whose first points lie within `radius`."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    if not shoots_:
+        return []
+    starts = np.array([s.points[0] for s in shoots_])
+    pairs = cKDTree(starts).query_pairs(radius, output_type="ndarray")
+    from scipy.sparse import coo_matrix
+
+    n = len(shoots_)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(g, directed=False)
+    groups: dict[int, list[int]] = {}
+    for i, lab in enumerate(labels):
+        groups.setdefault(int(lab), []).append(i)
+    # along the plant: by the first point's position along its principal horizontal axis
+    order = sorted(groups.values(), key=lambda g: tuple(starts[g[0]]))
+    return order
+
+
+def _resample(P: Array, R: Array, step: float = 0.002) -> tuple[Array, Array]:
+    a = arc_length(P)
+    n = max(2, int(np.ceil(a[-1] / step)) + 1)
+    t = np.linspace(0.0, a[-1], n)
+    return np.column_stack([np.interp(t, a, P[:, d]) for d in range(3)]), np.interp(t, a, R)
+
+
+def _first_clear(s: Shoot, others: list[tuple[Array, Array]]) -> tuple[int, float]:
+    """Index of the first point of s whose surface is `PART_GAP` clear of every polyline in
+    `others` (points, radii), and the radius of the nearest other there; with no others, of
+    the wood it starts on."""
+    from scipy.spatial import cKDTree
+
+    if not others:
+        i = int(np.searchsorted(s.reach, s.wood_radius + float(s.radii[0]) + PART_GAP))
+        return min(i, len(s.points) - 1), s.wood_radius
+    pts = np.concatenate([o[0] for o in others])
+    rad = np.concatenate([o[1] for o in others])
+    d, k = cKDTree(pts).query(s.points)
+    gap = d - rad[k] - s.radii
+    clear = np.nonzero(gap >= PART_GAP)[0]
+    # the first point after which it stays clear for 1 cm (a touch of canes is not a parting)
+    for i in clear:
+        ahead = (s.arc >= s.arc[i]) & (s.arc <= s.arc[i] + 0.01)
+        if np.all(gap[ahead] >= PART_GAP):
+            return int(i), float(rad[k[i]])
+    return len(s.points) - 1, float(rad[k[-1]])
+
+
+def _wood(sk: Skeleton) -> list[tuple[Array, Array]]:
+    """A vine's permanent wood as polylines (resampled); none for a tree (its shoots start on
+    their fork)."""
+    if not _vine(sk):
+        return []
+    return [_resample(b.points, b.radii) for b in sk.branches
+            if (b.kind in PERMANENT or b.parent < 0) and len(b.points) > 1]  # fmt: skip
+
+
+def _buds(sk: Skeleton, s: Shoot, cfg: RuleConfig) -> Array:
+    """Arc positions of the shoot's buds."""
+    b = sk.branches[s.branch]
+    if cfg.internode == 0.0 and len(b.nodes):
+        # the tip branch's nodes, moved onto the shoot's arc
+        base = b.points[0]
+        k, t, _ = nearest_on_polyline(base, s.points)
+        a0 = s.arc[k] + t * (s.arc[min(k + 1, len(s.arc) - 1)] - s.arc[k])
+        return a0 + b.nodes
+    step = cfg.bud_spacing()
+    reach = s.wood_radius + FIRST_NODE + step * np.arange(int(s.reach[-1] / step) + 2)
+    reach = reach[reach <= s.reach[-1]]
+    return np.interp(reach, s.reach, s.arc)
+
+
+def _shorten_at(s: Shoot, n: int) -> float | None:
+    """Arc position of the cut leaving n buds, or None when the shoot has no bud n + 1."""
+    if len(s.buds) < n + 1:
+        return None
+    return float(s.buds[n - 1] + BETWEEN_BUDS * (s.buds[n] - s.buds[n - 1]))
+
+
+def _placement(s: Shoot, up: Array) -> tuple[float, float]:
+    """How well placed a cane is: how upright its first 10 cm past its parting, then its
+    thickness there."""
+    a0 = s.arc[s.part]
+    p0 = s.at(a0)[0]
+    p1 = s.at(min(a0 + 0.10, s.arc[-1]))[0]
+    d = p1 - p0
+    upright = float(d @ up / max(np.linalg.norm(d), 1e-9))
+    return round(upright, 2), float(s.radii[s.part])
+
+
+def analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]]:
+    """The skeleton's shoots with their spurs, partings and buds."""
+    ss = shoots(sk)
+    groups = _group(ss, cfg.spur_radius)
+    wood = _wood(sk)
+    for g_i, g in enumerate(groups):
+        order = sorted(g, key=lambda i: -ss[i].arc[-1])  # longest first
+        for rank, i in enumerate(order):
+            s = ss[i]
+            s.spur = g_i
+            longer = [_resample(ss[j].points, ss[j].radii) for j in order[:rank]]
+            if longer:
+                s.part, r_other = _first_clear(s, longer)
+                if s.radii[s.part] < LATERAL_RATIO * r_other:
+                    # a side shoot: of the longer shoot it lies nearest where it parts
+                    p = s.points[s.part]
+                    near = min(order[:rank],
+                               key=lambda j: np.min(np.linalg.norm(ss[j].points - p, axis=1)))  # fmt: skip
+                    s.side_of = near
+            else:
+                s.part, _ = _first_clear(s, wood)
+        for i in g:
+            ss[i].buds = _buds(sk, ss[i], cfg)
+    return ss, groups
+
+
+def _cut(s: Shoot, a: float, action: str, reason: str, label: str) -> Proposal:
+    p, axis, r = s.at(a)
+    return Proposal(p, axis, r, action, reason, label, s.window(a), s.branch)
+
+
+def _spur_base(ss: list[Shoot], g: list[int], sk: Skeleton) -> tuple[Shoot, float]:
+    """Where a whole spur is removed: on its longest shoot, where it leaves the permanent wood."""
+    s = max((ss[i] for i in g), key=lambda s: s.arc[-1])
+    i, _ = _first_clear(s, _wood(sk))
+    return s, float(s.arc[i])
+
+
+def propose_cuts(sk: Skeleton, cfg: RuleConfig, up: Array | None = None) -> list[Proposal]:
+    """The cuts the rule of `cfg` proposes on the skeleton (vine frame: +Z up)."""
+    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
+    if cfg.rule == "cane" and not _vine(sk):
+        raise InputError(
+            "the cane rule is for grapevines (a skeleton with cordons, spurs, canes or shoots); "
+            "this skeleton is a tree's (branches only): use the spur rule"
+        )
+    ss, groups = analyse(sk, cfg)
+    if not ss:
+        raise InputError("the skeleton has no canes or shoots to prune")
+    out: list[Proposal] = []
+
+    def canes_of(g: list[int]) -> list[int]:
+        return [i for i in g if ss[i].side_of < 0]
+
+    def best(g: list[int], need: int) -> int | None:
+        """The best-placed cane of a spur with at least `need` buds (any cane when none has)."""
+        cands = canes_of(g)
+        long_ = [i for i in cands if len(ss[i].buds) >= need]
+        pool = long_ or cands
+        return max(pool, key=lambda i: _placement(ss[i], up)) if pool else None
+
+    def shorten(i: int, n: int, what: str) -> None:
+        s = ss[i]
+        a = _shorten_at(s, n)
+        if a is None:
+            return  # it has no more than n buds: left as it is
+        out.append(_cut(s, a, "shorten", f"{what}: {s.label} shortened to {n} buds", s.label))
+
+    def remove_others(g: list[int], kept: int, spur_name: str) -> None:
+        for i in canes_of(g):
+            if i == kept:
+                continue
+            s = ss[i]
+            out.append(_cut(s, float(s.arc[s.part]), "remove",
+                            f"{spur_name}: {s.label} removed at its base (kept: {ss[kept].label})",
+                            s.label))  # fmt: skip
+
+    if cfg.rule == "spur":
+        for g_i, g in enumerate(groups):
+            k = best(g, cfg.buds + 1)
+            if k is None:
+                continue
+            name = f"spur {g_i + 1}"
+            shorten(k, cfg.buds, name)
+            remove_others(g, k, name)
+        return out
+
+    # cane pruning: spurs by their distance from the head
+    head = _head(sk)
+    dist = [float(np.min([np.linalg.norm(ss[i].points[0] - head) for i in g])) for g in groups]
+    order = sorted(range(len(groups)), key=lambda j: dist[j])
+    kept_canes: list[int] = []
+    renewal: int | None = None
+    for j in order:
+        k = best(groups[j], cfg.cane_buds)
+        if k is None or len(ss[k].buds) < min(cfg.cane_buds, 3):
+            continue
+        if len(kept_canes) < cfg.canes:
+            kept_canes.append(j)
+        elif renewal is None:
+            renewal = j
+            break
+    for j, g in enumerate(groups):
+        name = f"spur {j + 1}"
+        if j in kept_canes or j == renewal:
+            k = best(g, cfg.cane_buds if j in kept_canes else cfg.buds + 1)
+            assert k is not None
+            if j in kept_canes:
+                shorten(k, cfg.cane_buds, f"{name} (cane {kept_canes.index(j) + 1} of the head)")
+            else:
+                shorten(k, cfg.buds, f"{name} (renewal spur)")
+            remove_others(g, k, name)
+            continue
+        s, a = _spur_base(ss, g, sk)
+        out.append(_cut(s, a, "remove", f"{name}: removed at the permanent wood ({dist[j]:.2f} m "
+                                         "from the head)", s.label))  # fmt: skip
+    return out
+
+
+def _head(sk: Skeleton) -> Array:
+    """The vine's head: the trunk's top (where its cordons or canes start)."""
+    roots = [b for b in sk.branches if b.parent < 0]
+    trunk = max(roots, key=lambda b: b.length)
+    return trunk.points[-1]

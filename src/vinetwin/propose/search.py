@@ -1,0 +1,245 @@
+"""A pruning pose for each cut, searched, not defaulted.
+
+For a cut point and its cane, approach directions are tried over a grid of azimuth and elevation
+(`SearchConfig`), each at the standoff with the cane across the image (roll 0), and kept only
+when:
+
+- **clear**: every part of the body (`BodyConfig`: the camera swept along its straight approach,
+  the tool's capsule from the camera to the cut) stays `margin` away from the vine, the cane
+  being cut excepted within the jaw zone; the vine is the mesh's vertices and the centres of its
+  triangles (on a tube mesh of 2 mm edges a clearance is exact to about 1 mm);
+- **seen**: the camera sees the cut point and at least `min_visible` of its cane within 5 cm
+  (Open3D ray casting towards the cane's centre points);
+- **rich**: the camera sees at least `min_points` vine points in its depth range (every 16th
+  pixel cast, times 256).
+
+Of those the best by `score`: clearance (counted up to 3 cm), the cane's visible share, the
+points seen (up to 4x `min_points`) and closeness to the default approach (perpendicular to the
+cane from the robot's side), which the servo's validations know best. A cut with no acceptable
+direction gets no pose, with the reason.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from vinetwin import _lazy
+from vinetwin.camera import CameraModel
+from vinetwin.frames import Array
+from vinetwin.propose.config import BodyConfig, SearchConfig
+from vinetwin.twin.poses import (
+    Approach,
+    default_approach,
+    direction_from_angles,
+    pruning_pose,
+)
+
+#: Clearance beyond this (m) scores no better (and is not measured further).
+CLEARANCE_CAP = 0.03
+#: Pixels between the rays cast to count what the camera sees.
+RAY_STEP = 16
+
+
+@dataclass
+class Candidate:
+    """One approach direction, scored."""
+
+    approach: Approach
+    clearance: float
+    """Smallest distance (m) from the body to the vine (negative: inside)."""
+    visible: float = 0.0
+    """Share of the cane within 5 cm of the cut the camera sees."""
+    cut_seen: bool = False
+    points: int = 0
+    """Vine points the camera sees (full-resolution estimate)."""
+    score: float = -math.inf
+
+    def summary(self) -> dict[str, Any]:
+        return {"azimuth_deg": round(math.degrees(self.approach.azimuth), 1),
+                "elevation_deg": round(math.degrees(self.approach.elevation), 1),
+                "clearance_m": round(self.clearance, 4), "visible": round(self.visible, 3),
+                "cut_seen": self.cut_seen, "points": self.points}  # fmt: skip
+
+
+@dataclass
+class Found:
+    """The search's answer for one cut: the best candidate (None when no direction passes),
+    the reason when none does, and the default approach's scores for comparison."""
+
+    best: Candidate | None
+    reason: str
+    default: Candidate
+    tried: int
+
+
+class VineObstacles:
+    """The vine as the search sees it: points for clearances, a ray-casting scene for sight."""
+
+    def __init__(self, vertices: Array, faces: np.ndarray, camera: CameraModel) -> None:
+        from scipy.spatial import cKDTree
+
+        V = np.asarray(vertices, dtype=np.float64)
+        F = np.asarray(faces, dtype=np.int64)
+        # the vertices, and the centres of triangles with an edge over 3 mm (of a tube mesh of
+        # 2 mm edges, no surface point is more than about 1.2 mm from a vertex)
+        E = V[F]
+        edge = np.linalg.norm(E - np.roll(E, 1, axis=1), axis=2).max(axis=1)
+        self.points = np.concatenate([V, E[edge > 0.003].mean(axis=1)])
+        self.tree = cKDTree(self.points)
+        self.camera = camera
+        o3d = _lazy.open3d()
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(
+            o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32))
+        )
+        cam = camera
+        u, v = np.meshgrid(np.arange(RAY_STEP / 2, cam.width, RAY_STEP),
+                           np.arange(RAY_STEP / 2, cam.height, RAY_STEP))  # fmt: skip
+        rays = np.column_stack([(u.ravel() - cam.cx) / cam.fx, (v.ravel() - cam.cy) / cam.fy,
+                                np.ones(u.size)])  # fmt: skip
+        self._pixel_rays = rays  # camera frame, z = 1
+
+    def cast(self, origins: Array, directions: Array) -> Array:
+        """Distance along each (unit) ray to the first hit (inf: none)."""
+        o3d = _lazy.open3d()
+        r = np.concatenate([origins, directions], axis=1).astype(np.float32)
+        return self.scene.cast_rays(o3d.core.Tensor(r))["t_hit"].numpy().astype(np.float64)
+
+
+def body_distance(Q: Array, standoff: float, body: BodyConfig, exempt: Array) -> Array:
+    """Distance (m) from points Q (..., N, 3) in the camera frame at the pruning pose to the body
+    (the swept camera and the tool's capsule; `exempt` points (N,) ignored by the tool); negative
+    inside."""
+    w, h, d = body.camera_size
+    travel = standoff - body.tool_reach
+    lo = np.array([-w / 2, -h / 2, -d])
+    hi = np.array([w / 2, h / 2, travel])
+    c, half = (lo + hi) / 2, (hi - lo) / 2
+    q = np.abs(Q - c) - half
+    box = np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+    t = np.clip(Q[..., 2], 0.0, standoff)
+    tool = np.sqrt(Q[..., 0] ** 2 + Q[..., 1] ** 2 + (Q[..., 2] - t) ** 2) - body.tool_radius
+    tool = np.where(exempt, np.inf, tool)
+    return np.minimum(box, tool)
+
+
+def approaches(cane_axis: Array, cfg: SearchConfig) -> list[Approach]:
+    """The grid of approach directions across the cane (at least `min_cross` from it)."""
+    a0, a1 = np.radians(cfg.azimuth_range)
+    e0, e1 = np.radians(cfg.elevation_range)
+    out = []
+    for az in np.linspace(a0, a1, cfg.azimuths):
+        for el in np.linspace(e0, e1, cfg.elevations):
+            d = direction_from_angles(float(az), float(el))
+            if abs(float(d @ cane_axis)) <= math.cos(math.radians(cfg.min_cross)) + 1e-9:
+                out.append(Approach(cfg.standoff, float(az), float(el), 0.0))
+    return out
+
+
+def _clearances(
+    obs: VineObstacles, cut: Array, axis: Array, aps: list[Approach], cfg: SearchConfig
+) -> Array:
+    """Each approach's clearance (m), exact up to `CLEARANCE_CAP` (reported as the cap beyond):
+    only the vine points in a corridor around the body's axis are measured."""
+    body = cfg.body
+    w, h, d = body.camera_size
+    corridor = max(math.hypot(w, h) / 2, body.tool_radius) + CLEARANCE_CAP
+    idx = obs.tree.query_ball_point(cut, cfg.standoff + d + corridor)
+    out = np.full(len(aps), CLEARANCE_CAP)
+    if not idx:
+        return out
+    Q = obs.points[np.asarray(idx)]
+    exempt = np.linalg.norm(Q - cut, axis=1) < body.jaw_zone
+    Ts = np.stack([pruning_pose(cut, axis, ap) for ap in aps])
+    Z, O = Ts[:, :3, 2], Ts[:, :3, 3]
+    t = Q @ Z.T - np.einsum("dj,dj->d", O, Z)  # (N, D): along each optical axis
+    perp2 = (Q * Q).sum(1)[:, None] - 2 * Q @ O.T + (O * O).sum(1)[None] - t * t
+    near = (t > -d - corridor) & (t < cfg.standoff + corridor) & (perp2 < corridor**2)
+    for i in np.nonzero(near.any(axis=0))[0]:
+        k = near[:, i]
+        Qc = (Q[k] - O[i]) @ Ts[i, :3, :3]
+        out[i] = min(float(body_distance(Qc, cfg.standoff, body, exempt[k]).min()), CLEARANCE_CAP)
+    return out
+
+
+def _sight(obs: VineObstacles, c: Candidate, cut: Array, axis: Array, cane: Array,
+           radius: float) -> None:  # fmt: skip
+    """Fills what the camera sees at the candidate's pose."""
+    T = pruning_pose(cut, axis, c.approach)
+    R, o = T[:3, :3], T[:3, 3]
+    cam = obs.camera
+    # the cane near the cut (and the cut itself): each centre point seen when the first hit
+    # towards it is on its own surface
+    targets = np.vstack([cut[None], cane])
+    vec = targets - o
+    dist = np.linalg.norm(vec, axis=1)
+    dirs = vec / dist[:, None]
+    pc = (targets - o) @ R
+    in_view = (
+        (pc[:, 2] > cam.min_depth)
+        & (pc[:, 2] < cam.max_depth)
+        & (np.abs(pc[:, 0] / pc[:, 2] * cam.fx + cam.cx - cam.width / 2) < cam.width / 2)
+        & (np.abs(pc[:, 1] / pc[:, 2] * cam.fy + cam.cy - cam.height / 2) < cam.height / 2)
+    )
+    t = obs.cast(np.repeat(o[None], len(targets), 0), dirs)
+    seen = in_view & (t >= dist - radius - 0.004)
+    c.cut_seen = bool(seen[0])
+    c.visible = float(seen[1:].mean()) if len(seen) > 1 else float(seen[0])
+    rays = obs._pixel_rays
+    dirs = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    t = obs.cast(np.repeat(o[None], len(dirs), 0), dirs @ R.T)
+    z = t * dirs[:, 2]
+    hit = np.isfinite(z) & (z > cam.min_depth) & (z < cam.max_depth)
+    c.points = int(hit.sum()) * RAY_STEP * RAY_STEP
+
+
+def search_pose(
+    obs: VineObstacles,
+    cut: Array,
+    cane_axis: Array,
+    cane: Array,
+    radius: float,
+    cfg: SearchConfig,
+) -> Found:
+    """The best pruning pose for one cut (see the module's docstring)."""
+    cut = np.asarray(cut, dtype=np.float64)
+    axis = np.asarray(cane_axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    dflt = default_approach(axis, cfg.standoff)
+    aps = [dflt, *approaches(axis, cfg)]
+    clear = _clearances(obs, cut, axis, aps, cfg)
+    cands = [Candidate(ap, float(cl)) for ap, cl in zip(aps, clear, strict=True)]
+    default, tried = cands[0], cands[1:]
+    _sight(obs, default, cut, axis, cane, radius)
+    ok = [c for c in tried if c.clearance >= cfg.body.margin]
+    if not ok:
+        b = max(tried, key=lambda c: c.clearance) if tried else default
+        return Found(None, f"no approach keeps {cfg.body.margin * 1000:.0f} mm from the vine "
+                           f"(best {b.clearance * 1000:.1f} mm of {len(tried)} tried)",
+                     default, len(tried))  # fmt: skip
+    d0 = direction_from_angles(dflt.azimuth, dflt.elevation)
+    for c in ok:
+        _sight(obs, c, cut, axis, cane, radius)
+        d = direction_from_angles(c.approach.azimuth, c.approach.elevation)
+        c.score = (
+            min(c.clearance, CLEARANCE_CAP) / CLEARANCE_CAP
+            + c.visible
+            + 0.5 * min(c.points / max(4 * cfg.min_points, 1), 1.0)
+            + 0.5 * float(d @ d0)
+        )
+    good = [c for c in ok if c.cut_seen and c.visible >= cfg.min_visible
+            and c.points >= cfg.min_points]  # fmt: skip
+    if not good:
+        seen = [c for c in ok if c.cut_seen]
+        why = (
+            "the cut point is hidden from every clear approach"
+            if not seen
+            else f"no clear approach sees {cfg.min_visible:.0%} of the cane near the cut and "
+            f"{cfg.min_points} vine points (best: {max(c.visible for c in seen):.0%} seen)"
+        )
+        return Found(None, why, default, len(tried))
+    return Found(max(good, key=lambda c: c.score), "", default, len(tried))
