@@ -70,8 +70,8 @@ class Shoot:
     reach: Array = field(init=False)
     """Straight-line distance from its first point, never decreasing."""
     spur: int = -1
-    part: int = 0
-    """Index of the point where it parts from the other shoots of its spur."""
+    part: float = 0.0
+    """Arc position where it parts from the other shoots of its spur (or the wood)."""
     side_of: int = -1
     """For a side shoot: the shoot it grows on."""
     buds: Array = field(default_factory=lambda: np.zeros(0))
@@ -171,26 +171,27 @@ def _resample(P: Array, R: Array, step: float = 0.002) -> tuple[Array, Array]:
     return np.column_stack([np.interp(t, a, P[:, d]) for d in range(3)]), np.interp(t, a, R)
 
 
-def _first_clear(s: Shoot, others: list[tuple[Array, Array]]) -> tuple[int, float]:
-    """Index of the first point of s whose surface is `PART_GAP` clear of every polyline in
-    `others` (points, radii), and the radius of the nearest other there; with no others, of
-    the wood it starts on."""
+def _first_clear(s: Shoot, others: list[tuple[Array, Array]]) -> tuple[float, float]:
+    """Arc position on s where its surface first comes `PART_GAP` clear of every polyline in
+    `others` (points, radii) and stays so for 1 cm, and the radius of the nearest other there;
+    with no others, of the wood it starts on."""
     from scipy.spatial import cKDTree
 
     if not others:
-        i = int(np.searchsorted(s.reach, s.wood_radius + float(s.radii[0]) + PART_GAP))
-        return min(i, len(s.points) - 1), s.wood_radius
+        r = s.wood_radius + float(s.radii[0]) + PART_GAP
+        return float(np.interp(r, s.reach, s.arc)), s.wood_radius
     pts = np.concatenate([o[0] for o in others])
     rad = np.concatenate([o[1] for o in others])
     d, k = cKDTree(pts).query(s.points)
     gap = d - rad[k] - s.radii
-    clear = np.nonzero(gap >= PART_GAP)[0]
-    # the first point after which it stays clear for 1 cm (a touch of canes is not a parting)
-    for i in clear:
+    for i in np.nonzero(gap >= PART_GAP)[0]:
         ahead = (s.arc >= s.arc[i]) & (s.arc <= s.arc[i] + 0.01)
         if np.all(gap[ahead] >= PART_GAP):
-            return int(i), float(rad[k[i]])
-    return len(s.points) - 1, float(rad[k[-1]])
+            if i == 0:
+                return 0.0, float(rad[k[0]])
+            f = (PART_GAP - gap[i - 1]) / max(gap[i] - gap[i - 1], 1e-12)
+            return float(s.arc[i - 1] + f * (s.arc[i] - s.arc[i - 1])), float(rad[k[i]])
+    return float(s.arc[-1]), float(rad[k[-1]])
 
 
 def _wood(sk: Skeleton) -> list[tuple[Array, Array]]:
@@ -227,12 +228,12 @@ def _shorten_at(s: Shoot, n: int) -> float | None:
 def _placement(s: Shoot, up: Array) -> tuple[float, float]:
     """How well placed a cane is: how upright its first 10 cm past its parting, then its
     thickness there."""
-    a0 = s.arc[s.part]
+    a0 = s.part
     p0 = s.at(a0)[0]
     p1 = s.at(min(a0 + 0.10, s.arc[-1]))[0]
     d = p1 - p0
     upright = float(d @ up / max(np.linalg.norm(d), 1e-9))
-    return round(upright, 2), float(s.radii[s.part])
+    return round(upright, 2), float(np.interp(s.part, s.arc, s.radii))
 
 
 def analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]]:
@@ -248,9 +249,9 @@ def analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]
             longer = [_resample(ss[j].points, ss[j].radii) for j in order[:rank]]
             if longer:
                 s.part, r_other = _first_clear(s, longer)
-                if s.radii[s.part] < LATERAL_RATIO * r_other:
+                if np.interp(s.part, s.arc, s.radii) < LATERAL_RATIO * r_other:
                     # a side shoot: of the longer shoot it lies nearest where it parts
-                    p = s.points[s.part]
+                    p = s.at(s.part)[0]
                     near = min(order[:rank],
                                key=lambda j: np.min(np.linalg.norm(ss[j].points - p, axis=1)))  # fmt: skip
                     s.side_of = near
@@ -269,8 +270,7 @@ def _cut(s: Shoot, a: float, action: str, reason: str, label: str) -> Proposal:
 def _spur_base(ss: list[Shoot], g: list[int], sk: Skeleton) -> tuple[Shoot, float]:
     """Where a whole spur is removed: on its longest shoot, where it leaves the permanent wood."""
     s = max((ss[i] for i in g), key=lambda s: s.arc[-1])
-    i, _ = _first_clear(s, _wood(sk))
-    return s, float(s.arc[i])
+    return s, _first_clear(s, _wood(sk))[0]
 
 
 def propose_cuts(sk: Skeleton, cfg: RuleConfig, up: Array | None = None) -> list[Proposal]:
@@ -308,7 +308,7 @@ def propose_cuts(sk: Skeleton, cfg: RuleConfig, up: Array | None = None) -> list
             if i == kept:
                 continue
             s = ss[i]
-            out.append(_cut(s, float(s.arc[s.part]), "remove",
+            out.append(_cut(s, s.part, "remove",
                             f"{spur_name}: {s.label} removed at its base (kept: {ss[kept].label})",
                             s.label))  # fmt: skip
 

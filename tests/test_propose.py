@@ -1,0 +1,223 @@
+"""Cut proposals: the pruning rules on a vine whose right answer is known by construction, the
+pose search's clearance, idempotence, and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vinetwin.errors import InputError, TwinError
+from vinetwin.propose.config import BodyConfig, ProposeConfig, RuleConfig, SearchConfig
+from vinetwin.propose.proposer import is_proposal, propose, review
+from vinetwin.propose.rules import BETWEEN_BUDS, propose_cuts
+from vinetwin.propose.search import VineObstacles, body_distance, search_pose
+from vinetwin.twin.model import Twin, twin_from_skeleton
+from vinetwin.twin.poses import Approach, default_approach, pruning_pose
+from vinetwin.twin.skeleton import FIRST_NODE, Branch, Skeleton
+
+WIRE = 0.7
+CORDON_R = 0.012
+INTERNODE = 0.07
+NODES = 0.02 + INTERNODE * np.arange(6)  # on a 0.42 m cane: buds at 2, 9, ..., 37 cm
+
+
+def _line(a: list[float], b: list[float], n: int = 60) -> np.ndarray:
+    return np.linspace(a, b, n)
+
+
+def known_vine() -> Skeleton:
+    """A trunk, a cordon along +X at the wire, three 3 cm spurs at x = 0.1, 0.3, 0.5; spur 1 has
+    an upright cane and one leaning 45 deg along -X; spurs 2 and 3 one upright cane each. Every
+    cane is straight, 0.42 m long, with a bud every 7 cm from 2 cm."""
+    sk = Skeleton()
+    sk.branches.append(Branch(_line([0, 0, 0], [0, 0, WIRE]), np.full(60, 0.015), "trunk"))
+    sk.branches.append(Branch(_line([0, 0, WIRE], [0.6, 0, WIRE]), np.full(60, CORDON_R),
+                              "cordon", parent=0))  # fmt: skip
+    top = WIRE + CORDON_R + 0.03
+    for x in (0.1, 0.3, 0.5):
+        sk.branches.append(Branch(_line([x, 0, WIRE], [x, 0, top], 10), np.full(10, 0.007),
+                                  "spur", parent=1, label=f"spur{x}"))  # fmt: skip
+        spur = len(sk.branches) - 1
+        ends = [[x, 0, top + 0.42]]
+        if x == 0.1:
+            ends.append([x - 0.42 / math.sqrt(2), 0, top + 0.42 / math.sqrt(2)])
+        for k, e in enumerate(ends):
+            sk.branches.append(Branch(_line([x, 0, top], e), np.full(60, 0.004), "cane",
+                                      parent=spur, label=f"cane{x}-{k}", nodes=NODES))  # fmt: skip
+    return sk
+
+
+def _upright_cut(x: float, buds: int) -> np.ndarray:
+    """Where an upright cane of spur x is shortened to `buds` buds (by its nodes)."""
+    s = NODES[buds - 1] + BETWEEN_BUDS * INTERNODE
+    return np.array([x, 0.0, WIRE + CORDON_R + 0.03 + s])
+
+
+def test_spur_rule_on_a_known_vine() -> None:
+    cuts = propose_cuts(known_vine(), RuleConfig(rule="spur", buds=2))
+    shorten = sorted((c for c in cuts if c.action == "shorten"), key=lambda c: c.point[0])
+    remove = [c for c in cuts if c.action == "remove"]
+    assert len(shorten) == 3 and len(remove) == 1
+    for c, x in zip(shorten, (0.1, 0.3, 0.5), strict=True):
+        assert np.linalg.norm(c.point - _upright_cut(x, 2)) < 1e-3, c.reason
+        assert abs(abs(c.cane_axis[2]) - 1) < 1e-6
+    # the leaning cane (the less upright) goes, cut where it parts from the kept one: its axis
+    # 2 x 4 mm + 5 mm from the upright's, 13 mm / sin 45 deg along it from the fork
+    r = remove[0]
+    assert "cane0.1-1" in r.reason and "kept: cane0.1-0" in r.reason
+    along = np.linalg.norm(r.point - [0.1, 0, WIRE + CORDON_R + 0.03])
+    assert along == pytest.approx(0.013 / math.sin(math.pi / 4), abs=0.003)
+    # three buds: the cut moves one internode out
+    three = propose_cuts(known_vine(), RuleConfig(rule="spur", buds=3))
+    assert min(np.linalg.norm(c.point - _upright_cut(0.3, 3)) for c in three) < 1e-3
+
+
+def test_spur_rule_with_a_stated_internode_counts_from_the_cordon() -> None:
+    """Without the skeleton's nodes (as on a scan), bud k sits FIRST_NODE + (k-1) internodes
+    past the cordon's surface."""
+    cuts = propose_cuts(known_vine(), RuleConfig(rule="spur", internode=0.08))
+    want = CORDON_R + FIRST_NODE + (1 + BETWEEN_BUDS) * 0.08
+    got = sorted(c.point[2] - WIRE for c in cuts if c.action == "shorten")
+    assert got == pytest.approx([want] * 3, abs=1e-3)
+
+
+def test_cane_rule_on_a_known_vine() -> None:
+    cuts = propose_cuts(known_vine(), RuleConfig(rule="cane", cane_buds=4, canes=2, buds=2))
+    by_x = {round(float(c.point[0]), 1): c for c in cuts if c.action == "shorten"}
+    # the two spurs nearest the head (x = 0.1, 0.3) keep a 4-bud cane, x = 0.5 is the renewal
+    assert set(by_x) == {0.1, 0.3, 0.5}
+    assert np.linalg.norm(by_x[0.1].point - _upright_cut(0.1, 4)) < 1e-3
+    assert np.linalg.norm(by_x[0.3].point - _upright_cut(0.3, 4)) < 1e-3
+    assert np.linalg.norm(by_x[0.5].point - _upright_cut(0.5, 2)) < 1e-3
+    assert "renewal" in by_x[0.5].reason
+    assert [c.action for c in cuts].count("remove") == 1
+    # one cane kept: the spur at 0.3 becomes the renewal spur, the one at 0.5 goes at the cordon
+    one = propose_cuts(known_vine(), RuleConfig(rule="cane", cane_buds=4, canes=1))
+    base = [c for c in one if "permanent wood" in c.reason]
+    assert len(base) == 1 and abs(base[0].point[0] - 0.5) < 1e-6
+    assert base[0].point[2] - WIRE == pytest.approx(
+        CORDON_R + 0.007 + 0.005, abs=1e-3
+    )  # spur r 7 mm
+
+
+def test_rule_options_out_of_range_are_named() -> None:
+    for kw, name in ((dict(buds=0), "buds"), (dict(cane_buds=40), "cane_buds"),
+                     (dict(canes=3), "canes"), (dict(internode=0.5), "internode"),
+                     (dict(rule="hedge"), "rule")):  # fmt: skip
+        with pytest.raises(InputError, match=name):
+            RuleConfig(**kw)  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="tool_reach"):
+        SearchConfig(standoff=0.06)
+    with pytest.raises(InputError, match="margin"):
+        BodyConfig(margin=-0.01)
+
+
+def test_cane_rule_refuses_a_tree() -> None:
+    sk = Skeleton([Branch(_line([0, 0, 0], [0, 0, 1]), np.full(60, 0.02)),
+                   Branch(_line([0, 0, 0.5], [0.4, 0, 0.9]), np.full(60, 0.005), parent=0)])  # fmt: skip
+    with pytest.raises(InputError, match="tree"):
+        propose_cuts(sk, RuleConfig(rule="cane"))
+    assert len(propose_cuts(sk, RuleConfig(rule="spur", internode=0.05))) == 1
+
+
+@pytest.fixture(scope="module")
+def vine_twin(tmp_path_factory: pytest.TempPathFactory) -> Twin:
+    return twin_from_skeleton(tmp_path_factory.mktemp("p") / "known.twin", known_vine(),
+                              edge=0.003)  # fmt: skip
+
+
+def _obstacles(twin: Twin) -> VineObstacles:
+    m = twin.load_mesh()
+    return VineObstacles(np.asarray(m.vertices), np.asarray(m.faces), twin.camera)
+
+
+def test_search_refuses_a_pose_inside_a_cane_and_clears_a_blocking_one(vine_twin: Twin) -> None:
+    """A cane in front of the cut, on the default approach's line: the default pose's tool runs
+    through it (negative clearance); the search turns the approach and keeps every body part
+    `margin` clear, checked independently against the mesh with Open3D's distance query."""
+    from vinetwin import _lazy
+
+    sk = known_vine()
+    cut = _upright_cut(0.3, 2)
+    # a blocking cane, 7 cm in front of the cut on the -Y side, across the row
+    sk.branches.append(Branch(_line([0.2, -0.07, cut[2] - 0.1], [0.4, -0.07, cut[2] + 0.1]),
+                              np.full(60, 0.004), "cane", parent=-1, label="blocker"))  # fmt: skip
+    root = vine_twin.root.parent / "blocked.twin"
+    twin = twin_from_skeleton(root, sk, edge=0.003)
+    obs = _obstacles(twin)
+    cfg = SearchConfig()
+    axis = np.array([0.0, 0.0, 1.0])
+    cane = np.array([cut + [0, 0, dz] for dz in np.linspace(-0.05, 0.05, 11)])
+    found = search_pose(obs, cut, axis, cane, 0.004, cfg)
+    assert found.default.clearance < 0  # the default approach runs the tool through the blocker
+    assert found.best is not None and found.best.clearance >= cfg.body.margin
+    assert found.best.cut_seen and found.best.visible >= cfg.min_visible
+    # the pose inside the blocking cane: refused by the same measure
+    inside = Approach(cfg.standoff, math.pi / 2, 0.0, 0.0)
+    T = pruning_pose(cut, axis, inside)
+    from vinetwin.propose.search import _clearances
+
+    assert _clearances(obs, cut, axis, [inside], cfg)[0] < 0
+    assert abs(T[1, 3] - (cut[1] - cfg.standoff)) < 1e-9
+    # independent check of the chosen pose: points on the body's surface, distance to the mesh
+    o3d = _lazy.open3d()
+    m = twin.load_mesh()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(m.faces, np.uint32)))  # fmt: skip
+    Tb = pruning_pose(cut, axis, found.best.approach)
+    body = cfg.body
+    zs = np.linspace(0, cfg.standoff, 200)
+    ring = np.linspace(0, 2 * math.pi, 16, endpoint=False)
+    tool = np.array([[body.tool_radius * math.cos(a), body.tool_radius * math.sin(a), z]
+                     for z in zs for a in ring])  # fmt: skip
+    far = np.linalg.norm(tool - [0, 0, cfg.standoff], axis=1) > body.jaw_zone + body.tool_radius
+    world = tool[far] @ Tb[:3, :3].T + Tb[:3, 3]
+    d = scene.compute_distance(o3d.core.Tensor(world.astype(np.float32))).numpy()
+    assert d.min() > 0.8 * body.margin
+    # and the analytic distance agrees with the sampled body on the vine's points near it
+    Q = (obs.points - Tb[:3, 3]) @ Tb[:3, :3]
+    dist = body_distance(Q, cfg.standoff, body, np.linalg.norm(obs.points - cut, axis=1) < 0.025)
+    assert dist.min() == pytest.approx(found.best.clearance, abs=1e-9)
+    assert default_approach(axis).azimuth == pytest.approx(math.pi / 2)
+
+
+def test_propose_is_idempotent_and_replace_keeps_a_persons_cuts(vine_twin: Twin) -> None:
+    twin = Twin.load(vine_twin.root)
+    own = twin.add_cut_point([0.3, 0.0, 1.0], [0, 0, 1])
+    twin.add_pose(own.id)
+    twin.save()
+    first = propose(twin, ProposeConfig())
+    assert first.counts()["proposed"] == 4 and first.counts()["with_pose"] == 4
+    n = len(twin.cut_points)
+    again = propose(Twin.load(vine_twin.root), ProposeConfig())
+    assert again.counts()["proposed"] == 0 and again.already == 4
+    twin = Twin.load(vine_twin.root)
+    assert len(twin.cut_points) == n == 5
+    # one accepted, then --replace: the three others are proposed again, nothing is doubled
+    accepted = [c.id for c in twin.cut_points if is_proposal(c)][0]
+    review(twin, True, [accepted])
+    twin.save()
+    third = propose(twin, ProposeConfig(replace=True))
+    assert third.replaced == 3 and third.already == 1 and third.counts()["proposed"] == 3
+    twin = Twin.load(vine_twin.root)
+    assert len(twin.cut_points) == 5
+    assert twin.cut_point(own.id).source == "manual"
+    assert twin.cut_point(accepted).extra["proposal"]["status"] == "accepted"
+    # reject all that are still proposed: their poses go with them
+    gone = review(twin, False)
+    assert len(gone) == 3 and len(twin.cut_points) == 2
+    assert {p.cut_point for p in twin.poses} <= {c.id for c in twin.cut_points}
+    with pytest.raises(InputError, match="not a proposal"):
+        review(twin, False, [own.id])
+
+
+def test_a_twin_without_a_skeleton_names_the_importers(tmp_path) -> None:
+    from vinetwin.twin.skeleton import tube_mesh
+
+    V, F = tube_mesh(known_vine(), edge=0.004)
+    twin = Twin.create(tmp_path / "bare.twin", V, F)
+    with pytest.raises(TwinError, match="import-scan"):
+        propose(twin, ProposeConfig())
