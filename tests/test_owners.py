@@ -95,10 +95,13 @@ def test_session_path_functions_take_at_most_six_parameters() -> None:
     assert not too_many, too_many
 
 
-def test_no_source_file_is_over_700_lines_and_the_cli_at_most_450() -> None:
+def test_no_source_file_is_over_700_lines_and_no_cli_module_over_300() -> None:
+    """The command line's modules hold argument definitions and calls only: a family of
+    commands (`cli/twin.py`, `cli/sim.py`, `cli/capture.py`) stays short."""
     sizes = {p: len(p.read_text().splitlines()) for p in SRC.rglob("*.py")}
     assert not {str(p): n for p, n in sizes.items() if n > 700}
-    assert sizes[SRC / "cli.py"] <= 450
+    cli = {p.name: n for p, n in sizes.items() if p.parent == SRC / "cli"}
+    assert len(cli) >= 4 and max(cli.values()) <= 300, cli
 
 
 # ----------------------------------------------------------------------------- settings

@@ -197,7 +197,7 @@ def test_propose_is_idempotent_and_replace_keeps_a_persons_cuts(vine_twin: Twin)
     twin = Twin.load(vine_twin.root)
     assert len(twin.cut_points) == n == 5
     # one accepted, then --replace: the three others are proposed again, nothing is doubled
-    accepted = [c.id for c in twin.cut_points if is_proposal(c)][0]
+    accepted = next(c.id for c in twin.cut_points if is_proposal(c))
     review(twin, True, [accepted])
     twin.save()
     third = propose(twin, ProposeConfig(replace=True))

@@ -104,6 +104,15 @@ def propose(
     sk = _require_skeleton(twin)
     proposals = propose_cuts(sk, cfg.rule)
     result = ProposeResult(cfg.rule.rule)
+    earlier = {
+        c.extra["proposal"].get("rule") for c in twin.cut_points if is_proposal(c, "proposed")
+    }
+    if not cfg.replace and earlier - {cfg.rule.rule}:
+        raise InputError(
+            f"twin '{twin.name}' holds proposals of the {', '.join(sorted(map(str, earlier)))} "
+            f"rule not yet reviewed; pass --replace to replace them with the {cfg.rule.rule} "
+            "rule's (a person's own cuts and accepted proposals stay)"
+        )
     if cfg.replace:
         for cut in [c for c in twin.cut_points if is_proposal(c, "proposed")]:
             twin.delete_cut_point(cut.id)

@@ -422,6 +422,18 @@ def _cylinder_candidates(sk: Skeleton) -> None:
         )
 
 
+@dataclass(frozen=True, kw_only=True)
+class ImportVineConfig:
+    """How `vinetwin import-vine` reads and meshes a skeleton file."""
+
+    format: Literal["auto", "hydroshoot", "cylinders"] = "auto"
+    """File format; auto detects it from the first lines."""
+    edge: float = 0.003
+    """Target triangle edge length of the tube mesh, metres."""
+    cut_points: int = 0
+    """How many cut-point candidates (hydroshoot shoots) become cut points with a pose."""
+
+
 def import_twin(
     path: str | Path,
     out: str | Path,
