@@ -20,7 +20,7 @@ from vinetwin.twin.skeleton import FIRST_NODE, Branch, Skeleton
 WIRE = 0.7
 CORDON_R = 0.012
 INTERNODE = 0.07
-NODES = 0.02 + INTERNODE * np.arange(6)  # on a 0.42 m cane: buds at 2, 9, ..., 37 cm
+NODES = (0.02 + INTERNODE * np.arange(6)).astype(np.float64)  # buds at 2, 9, ..., 37 cm
 
 
 def _line(a: list[float], b: list[float], n: int = 60) -> np.ndarray:
