@@ -378,3 +378,89 @@ def test_app_reports_a_broken_twin_and_validates_a_pose(twin_dir: Path, tmp_path
         assert "converged" in app.validation.content and "did not" not in app.validation.content
     finally:
         app.close()
+
+
+def test_session_proposes_reviews_and_undoes(twin_dir: Path) -> None:
+    """Proposals through the editing session: drawn apart, accepted or rejected one or all,
+    an undo takes a whole proposal run back."""
+    from vinetwin.propose.config import ProposeConfig, RuleConfig
+    from vinetwin.propose.proposer import describe_cut, is_proposal
+    from vinetwin.web.proposals import COLOURS, cut_colour
+
+    sess = AuthoringSession(twin_dir)
+    assert sess.twin is not None
+    n0 = len(sess.twin.cut_points)
+    result = sess.propose(ProposeConfig(rule=RuleConfig(rule="spur")))
+    twin = sess.twin
+    assert result.rows and len(twin.cut_points) == n0 + len(result.rows)
+    on_disk = Twin.load(twin_dir)
+    assert sum(is_proposal(c, "proposed") for c in on_disk.cut_points) == len(result.rows)
+    prop = twin.cut_point(result.rows[0]["id"])
+    assert (
+        cut_colour(prop) == COLOURS["proposed"] and cut_colour(twin.cut_points[0]) == COLOURS["cut"]
+    )
+    assert "spur rule" in describe_cut(twin, prop.id) and "clearance" in describe_cut(twin, prop.id)
+    # the selected pose is the first proposal's: reject it, accept the rest
+    assert twin.pose(sess.selected).cut_point == prop.id
+    assert sess.review(False) == [prop.id]
+    assert len(sess.review(True, all_proposals=True)) == len(result.rows) - 1
+    assert not any(is_proposal(c, "proposed") for c in sess.twin.cut_points)
+    # a person's own cut cannot be rejected as a proposal: named, nothing changes
+    sess.selected = sess.twin.poses[0].id
+    with pytest.raises(Exception, match="not a proposal"):
+        sess.review(False)
+    for _ in range(3):  # accept all, reject one, propose
+        assert sess.undo()
+    assert len(Twin.load(twin_dir).cut_points) == n0
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed")
+def test_browser_proposes_and_reviews_cuts(twin_dir: Path, tmp_path: Path) -> None:
+    """In headless Chromium: Propose draws the proposals (magenta cut points), Reject selected
+    deletes one, Accept all accepts the rest; twin.json follows each click."""
+    from playwright.sync_api import sync_playwright
+
+    from vinetwin.web.server import serve
+
+    def proposals() -> list[dict[str, object]]:
+        cuts = json.loads((twin_dir / "twin.json").read_text())["cut_points"]
+        return [c["proposal"] for c in cuts if "proposal" in c]
+
+    def wait_for(cond: object, seconds: float = 60) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not cond():  # type: ignore[operator]
+            time.sleep(0.2)
+
+    port = _free_port()
+    app = serve(twin_dir, port=port)
+    try:
+        with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
+            ctx = launch(pw, profile)
+            page = ctx.new_page()
+            page.goto(f"http://127.0.0.1:{port}")
+            page.wait_for_selector("canvas", timeout=60_000)
+            page.get_by_role("button", name="Propose cuts").click()
+            wait_for(lambda: len(proposals()) > 0)
+            n = len(proposals())
+            assert n >= 5 and all(p["status"] == "proposed" for p in proposals())
+            page.wait_for_timeout(3000)
+            shot = tmp_path / "proposals.png"
+            page.screenshot(path=str(shot))
+            assert page.get_by_text(f"{n} proposals to review").count() >= 1
+            import matplotlib.image as mpimg
+
+            img = mpimg.imread(str(shot))[..., :3]
+            r, g, b = img[..., 0], img[..., 1], img[..., 2]
+            # the proposals' poses drawn green (`web.proposals.COLOURS`), their cut points magenta
+            assert ((g > 0.5) & (r < 0.3) & (b < 0.4))[:, :850].sum() > 20, "no proposal drawn"
+            colours = {k[1] for k, _ in app._cut_nodes.values()}
+            assert (200, 0, 200) in colours and (230, 30, 30) in colours
+            page.get_by_role("button", name="Reject selected").click()
+            wait_for(lambda: len(proposals()) == n - 1)
+            assert len(proposals()) == n - 1
+            page.get_by_role("button", name="Accept all").click()
+            wait_for(lambda: all(p["status"] == "accepted" for p in proposals()))
+            assert [p["status"] for p in proposals()] == ["accepted"] * (n - 1)
+            ctx.close()
+    finally:
+        app.close()

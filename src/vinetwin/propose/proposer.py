@@ -97,8 +97,10 @@ def propose(
     *,
     obstacles: VineObstacles | None = None,
     progress: Callable[[int, int], None] | None = None,
+    save: bool = True,
 ) -> ProposeResult:
-    """Proposes cuts on the twin by `cfg.rule`, each with a searched pose, and saves the twin."""
+    """Proposes cuts on the twin by `cfg.rule`, each with a searched pose, and saves the twin
+    (unless `save` is False: the web app's session saves itself)."""
     cfg = cfg or ProposeConfig()
     t0 = time.perf_counter()
     sk = _require_skeleton(twin)
@@ -144,7 +146,8 @@ def propose(
         cut.extra["proposal"] = rec
         result.rows.append(row)
     twin.extra["proposal_settings"] = settings
-    twin.save()
+    if save:
+        twin.save()
     result.seconds = time.perf_counter() - t0
     return result
 
@@ -184,3 +187,33 @@ def propose_folder(
         json_path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(json_path, json.dumps(result.to_json(), indent=1))
     return result
+
+
+def describe_cut(twin: Twin, cut_id: str) -> str:
+    """A cut's review status in words (Markdown): whose it is, the rule's reason, its pose's
+    search scores or why it has none, and its servo validations."""
+    cut = twin.cut_point(cut_id)
+    poses = [p for p in twin.poses if p.cut_point == cut_id]
+    if not is_proposal(cut):
+        head = f"**{cut.name or cut.id}**: a person's cut ({cut.source})"
+    else:
+        rec = cut.extra["proposal"]
+        head = f"**{cut.id}**: {rec.get('status', '?')} by the {rec.get('rule', '?')} rule: {rec.get('reason', '')}"
+        if rec.get("pose") != "found" and not poses:
+            return f"{head}. **No pose**: {rec.get('pose')}."
+    lines = [head + "."]
+    for p in poses:
+        s = p.extra.get("search")
+        if s:
+            lines.append(f"pose {p.id}: clearance {s['clearance_m'] * 1000:.1f} mm, cane seen "
+                         f"{s['visible']:.0%}, {s['points']} points")  # fmt: skip
+        for key, val in sorted(p.extra.items()):
+            if key.startswith("validation") and isinstance(val, dict):
+                rates = [
+                    f"{v}: {c['success_rate']:.0%}" for v, c in val.get("variants", {}).items()
+                ]
+                profile = key.removeprefix("validation").lstrip("_") or "ideal"
+                lines.append(f"servo-able ({profile}): " + ", ".join(rates))
+        if not any(k.startswith("validation") for k in p.extra):
+            lines.append(f"pose {p.id}: not validated yet (Validate, or `vinetwin validate`)")
+    return "; ".join(lines)

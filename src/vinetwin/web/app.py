@@ -26,6 +26,7 @@ from vinetwin.cloud import ICP_VARIANTS
 from vinetwin.conventions import viser_wxyz_position
 from vinetwin.errors import VinetwinError
 from vinetwin.twin.poses import DEFAULT_STANDOFF, STANDOFF_RANGE, Approach
+from vinetwin.web import proposals
 from vinetwin.web.config import WebConfig
 from vinetwin.web.session import AuthoringSession
 
@@ -284,13 +285,14 @@ class App:
         if twin is None:
             return
         self._sync_scene(twin)
-        lines = ["| pose | cut | variant | standoff |", "|---|---|---|---|"]
+        lines = ["| pose | cut | variant | standoff | status |", "|---|---|---|---|---|"]
         for p in twin.poses:
             mark = "**" if p.id == sess.selected else ""
-            lines.append(
-                f"| {mark}{p.name}{mark} | {p.cut_point} | {p.icp_variant} | {p.standoff:.3f} m |"
-            )
+            rec = twin.cut_point(p.cut_point).extra.get("proposal") or {}
+            lines.append(f"| {mark}{p.name}{mark} | {p.cut_point} | {p.icp_variant} | "
+                         f"{p.standoff:.3f} m | {rec.get('status', 'own')} |")  # fmt: skip
         self.listing.content = "\n".join(lines) if twin.poses else "No pruning poses yet."
+        self.proposal_status.content = proposals.status(self)
         ids = tuple(p.id for p in twin.poses) or ("-",)
         self.pose_dd.options = ids
         if sess.selected in ids:
@@ -316,18 +318,19 @@ class App:
         cuts = {
             c.id: (float(c.point[0]), float(c.point[1]), float(c.point[2])) for c in twin.cut_points
         }
+        by_id = {c.id: c for c in twin.cut_points}
         for cid in set(self._cut_nodes) - set(cuts):
             self._cut_nodes.pop(cid)[1].remove()
         for cid, point in cuts.items():
             old = self._cut_nodes.get(cid)
-            if old is not None and old[0] == point:
+            colour = proposals.cut_colour(by_id[cid])
+            if old is not None and old[0] == (point, colour):
                 continue
             if old is not None:
                 old[1].remove()
-            handle = s.add_icosphere(
-                f"/cuts/{cid}", radius=0.004, color=(230, 30, 30), position=point
-            )
-            self._cut_nodes[cid] = (point, handle)
+            handle = s.add_icosphere(f"/cuts/{cid}", radius=0.004 if colour == proposals.COLOURS["cut"] else 0.006,
+                                     color=colour, position=point)  # fmt: skip
+            self._cut_nodes[cid] = ((point, colour), handle)
         poses = {p.id: p for p in twin.poses}
         for pid in set(self._pose_nodes) - set(poses):
             for h in self._pose_nodes.pop(pid)[1:]:
@@ -337,12 +340,12 @@ class App:
             cut = cuts.get(p.cut_point)
             sel = pid == sess.selected
             shape = (fov, cam.width / cam.height)
-            key = (T.tobytes(), cut, sel, shape)
+            key = (T.tobytes(), cut, sel, shape, proposals.pose_colour(by_id.get(p.cut_point), sel))
             old = self._pose_nodes.get(pid)
             if old is not None and old[0] == key:
                 continue
             wxyz, pos = viser_wxyz_position(T)
-            color = (255, 120, 0) if sel else (40, 40, 200)
+            color = proposals.pose_colour(by_id.get(p.cut_point), sel)
             end = cut if cut is not None else pos
             segment = np.array([[pos, end]], np.float32)
             if old is not None and old[0][3] == shape:
@@ -412,6 +415,7 @@ class App:
             self.delete.on_click(
                 on(lambda: sess.delete_pose(sess.selected) if sess.selected else None)
             )
+        proposals.add_panel(self)
         with g.add_folder("Edit"):
             self.undo = g.add_button("Undo")
             self.undo.on_click(on(sess.undo))

@@ -51,6 +51,7 @@ class AuthoringSession:
         self._redo: list[dict[str, Any]] = []
         self._renderer: Any = None
         self._picker: Any = None
+        self._obstacles: Any = None
         self.selected = ""
         self.reload()
 
@@ -106,7 +107,7 @@ class AuthoringSession:
         """Releases the renderer and the picking scene (built again when next needed)."""
         if self._renderer is not None:
             self._renderer.close()
-        self._renderer = self._picker = None
+        self._renderer = self._picker = self._obstacles = None
 
     def pick(self, origin: Any, direction: Any) -> Array | None:
         """The first point where a ray (vine frame) hits the mesh, or None."""
@@ -197,6 +198,56 @@ class AuthoringSession:
             twin.delete_cut_point(pose.cut_point)  # a clicked cut point without poses goes too
         self.selected = twin.poses[-1].id if twin.poses else ""
         self.save_if_auto()
+
+    # ------------------------------------------------------------------ proposals
+    def obstacles(self) -> Any:
+        """The vine as the pose search sees it (built once)."""
+        from vinetwin.propose.search import VineObstacles
+
+        if self._obstacles is None:
+            self._obstacles = VineObstacles(self.vertices, self.faces, self._require().camera)
+        return self._obstacles
+
+    def propose(self, cfg: Any) -> Any:
+        """Cut proposals by a rule (`propose.proposer.propose`), an edit like any other (undo
+        removes them all); returns the `ProposeResult`."""
+        from vinetwin.propose.proposer import propose
+
+        twin = self._edit()
+        try:
+            result = propose(twin, cfg, obstacles=self.obstacles(), save=False)
+        except VinetwinError:
+            self._undo.pop()  # nothing changed
+            raise
+        first = next(
+            (p.id for p in twin.poses if p.cut_point in {r["id"] for r in result.rows}), ""
+        )
+        self.selected = first or self.selected
+        self.save_if_auto()
+        return result
+
+    def review(self, accept: bool, all_proposals: bool = False) -> list[str]:
+        """Accepts or rejects the selected pose's proposal (or every open one)."""
+        from vinetwin.propose.proposer import review
+
+        twin = self._require()
+        if all_proposals:
+            ids = None
+        elif self.selected:
+            ids = [twin.pose(self.selected).cut_point]
+        else:
+            return []
+        twin = self._edit()
+        try:
+            done = review(twin, accept, ids)
+        except VinetwinError:
+            self._undo.pop()  # nothing changed
+            raise
+        ids_left = [p.id for p in twin.poses]
+        if self.selected not in ids_left:
+            self.selected = ids_left[-1] if ids_left else ""
+        self.save_if_auto()
+        return done
 
     def undo(self) -> bool:
         return self._swap(self._undo, self._redo)
