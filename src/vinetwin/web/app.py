@@ -415,7 +415,7 @@ class App:
             self.delete.on_click(
                 on(lambda: sess.delete_pose(sess.selected) if sess.selected else None)
             )
-        proposals.add_panel(self)
+        self.proposal_status = proposals.add_panel(self)
         with g.add_folder("Edit"):
             self.undo = g.add_button("Undo")
             self.undo.on_click(on(sess.undo))

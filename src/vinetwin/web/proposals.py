@@ -39,8 +39,9 @@ def pose_colour(cut: Any, selected: bool) -> tuple[int, int, int]:
     )
 
 
-def add_panel(app: Any) -> None:
-    """The "Proposals" folder of the side panel, its callbacks attached here."""
+def add_panel(app: Any) -> Any:
+    """The "Proposals" folder of the side panel, its callbacks attached here; returns its
+    status text (Markdown)."""
     g, sess, on = app.server.gui, app.session, app._guarded
     rule = RuleConfig()
     with g.add_folder("Proposals"):
@@ -61,7 +62,7 @@ def add_panel(app: Any) -> None:
         app.accept_all.on_click(on(lambda: sess.review(True, all_proposals=True)))
         app.reject_all = g.add_button("Reject all")
         app.reject_all.on_click(on(lambda: sess.review(False, all_proposals=True)))
-        app.proposal_status = g.add_markdown("")
+        return g.add_markdown("")
 
 
 def _propose(app: Any) -> None:
