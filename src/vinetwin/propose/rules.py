@@ -47,6 +47,12 @@ from vinetwin.twin.skeleton import (
 PART_GAP = 0.005
 #: A shoot parting from one more than 1 / this times thicker is its side shoot.
 LATERAL_RATIO = 0.4
+#: The parting is extrapolated from where the surfaces are these multiples of `PART_GAP` apart.
+EXTRAPOLATE_FROM = (3.0, 6.0)
+#: Canes of one spur part within this distance (m) of where they leave the permanent wood
+#: (hydroshoot's longest spur and cane stub reach 17 cm); a shoot parting farther out grows on
+#: a cane (a lateral, or a crossing a scan's skeleton could not separate) and goes with it.
+MAX_PARTING = 0.18
 #: A shoot shorter than this past the permanent wood (m) is noise at a junction.
 MIN_SHOOT = 0.03
 #: The cut sits this share of the way from the last kept bud to the next.
@@ -171,10 +177,27 @@ def _resample(P: Array, R: Array, step: float = 0.002) -> tuple[Array, Array]:
     return np.column_stack([np.interp(t, a, P[:, d]) for d in range(3)]), np.interp(t, a, R)
 
 
+def _gap_reached(s: Shoot, gap: Array, level: float) -> float | None:
+    """Arc position where `gap` first reaches `level` and stays there for 1 cm (interpolated)."""
+    for i in np.nonzero(gap >= level)[0]:
+        ahead = (s.arc >= s.arc[i]) & (s.arc <= s.arc[i] + 0.01)
+        if np.all(gap[ahead] >= level):
+            if i == 0:
+                return 0.0
+            f = (level - gap[i - 1]) / max(gap[i] - gap[i - 1], 1e-12)
+            return float(s.arc[i - 1] + f * (s.arc[i] - s.arc[i - 1]))
+    return None
+
+
 def _first_clear(s: Shoot, others: list[tuple[Array, Array]]) -> tuple[float, float]:
-    """Arc position on s where its surface first comes `PART_GAP` clear of every polyline in
-    `others` (points, radii) and stays so for 1 cm, and the radius of the nearest other there;
-    with no others, of the wood it starts on."""
+    """Arc position on s where its surface comes `PART_GAP` clear of every polyline in `others`
+    (points, radii), and the radius of the nearest other there; with no others, of the wood it
+    starts on.
+
+    Near a fork a scan's skeleton runs two touching canes as one axis and parts them late, so
+    the parting is extrapolated from where the surfaces are 2x and 4x `PART_GAP` apart (both
+    skeletons agree there), along the straight line those two give; the true skeleton of two
+    straight canes gives the same point either way."""
     from scipy.spatial import cKDTree
 
     if not others:
@@ -184,14 +207,16 @@ def _first_clear(s: Shoot, others: list[tuple[Array, Array]]) -> tuple[float, fl
     rad = np.concatenate([o[1] for o in others])
     d, k = cKDTree(pts).query(s.points)
     gap = d - rad[k] - s.radii
-    for i in np.nonzero(gap >= PART_GAP)[0]:
-        ahead = (s.arc >= s.arc[i]) & (s.arc <= s.arc[i] + 0.01)
-        if np.all(gap[ahead] >= PART_GAP):
-            if i == 0:
-                return 0.0, float(rad[k[0]])
-            f = (PART_GAP - gap[i - 1]) / max(gap[i] - gap[i - 1], 1e-12)
-            return float(s.arc[i - 1] + f * (s.arc[i] - s.arc[i - 1])), float(rad[k[i]])
-    return float(s.arc[-1]), float(rad[k[-1]])
+    near = _gap_reached(s, gap, PART_GAP)
+    lo, hi = EXTRAPOLATE_FROM
+    a2, a4 = _gap_reached(s, gap, lo * PART_GAP), _gap_reached(s, gap, hi * PART_GAP)
+    if near is None:
+        return float(s.arc[-1]), float(rad[k[-1]])
+    at = near
+    if a2 is not None and a4 is not None and a4 > a2:
+        at = max(a2 - (a4 - a2) * (lo - 1) / (hi - lo), 0.0, min(near, a2) - 0.02)
+    i = int(np.clip(np.searchsorted(s.arc, at), 0, len(s.arc) - 1))
+    return at, float(rad[k[i]])
 
 
 def _wood(sk: Skeleton) -> list[tuple[Array, Array]]:
@@ -249,7 +274,8 @@ def analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]
             longer = [_resample(ss[j].points, ss[j].radii) for j in order[:rank]]
             if longer:
                 s.part, r_other = _first_clear(s, longer)
-                if np.interp(s.part, s.arc, s.radii) < LATERAL_RATIO * r_other:
+                far = np.interp(s.part, s.arc, s.reach) > MAX_PARTING
+                if far or np.interp(s.part, s.arc, s.radii) < LATERAL_RATIO * r_other:
                     # a side shoot: of the longer shoot it lies nearest where it parts
                     p = s.at(s.part)[0]
                     near = min(order[:rank],

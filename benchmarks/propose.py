@@ -1,0 +1,269 @@
+"""Cut proposals (`vinetwin propose`) on the bundled sample, a dense generated vine, two hydroshoot
+vines and a Tree-Models-Library tree (`../shared/data`): per plant and rule, the cuts proposed,
+poses found, median clearance, reference points per pose (rendered by `reference_for`, the
+export's chain), the time to propose, and:
+
+- **collisions**, checked apart from the search: points on the body's surfaces (`BodyConfig`:
+  the swept camera box, the tool's capsule outside the jaw zone) against the mesh with Open3D's
+  distance query, at every proposed pose and at the same cuts' default approaches;
+- **agreement under real-scan conditions** (`--agreement`): each vine scanned by the simulated
+  scanner at the realistic quality, imported with `import_scan`, proposals on it against
+  proposals on the true twin (moved into the scan's vine frame): the share of the true cuts with
+  one of ours within 1 cm, missing, extra; once with the same stated internode on both
+  (the skeleton's share of the error), once with the true twin's own nodes (the whole chain).
+
+    .venv/bin/python benchmarks/propose.py [--plants sample dense ...] [--rules spur cane]
+        [--agreement] [--keep DIR] [--json benchmarks/results/propose.json]
+
+`--keep DIR` leaves the proposed twins there (for `vinetwin validate DIR --profile field`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vinetwin import _lazy
+from vinetwin.propose.config import BodyConfig, ProposeConfig, RuleConfig, SearchConfig
+from vinetwin.propose.proposer import propose
+from vinetwin.twin.model import Twin
+from vinetwin.twin.poses import pruning_pose
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from results_file import machine
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+PLANTS = {
+    "sample": None,
+    "dense": None,
+    "gdc_can1": DATA / "vines/hydroshoot/gdc_can1_grapevine/digit.input",
+    "vsp_ww": DATA / "vines/hydroshoot/vsp_ww_grapevine/digit.input",
+    "apple_spindle": DATA / "trees/tree-models-library/Apple_1_TallSpindle.txt",
+}
+
+
+def make_twin(name: str, out: Path) -> Twin:
+    from vinetwin.twin.generator import sample_twin
+    from vinetwin.twin.importers import import_twin
+
+    if name == "sample":  # the bundled sample's vine (seed 3), without its cut points
+        return sample_twin(out, 3, cut_points=0, overwrite=True)
+    if name == "dense":
+        return sample_twin(out, 5, dense=True, cut_points=0, overwrite=True)
+    path = PLANTS[name]
+    assert path is not None
+    return import_twin(path, out, edge=0.003, overwrite=True)
+
+
+def body_points(standoff: float, body: BodyConfig) -> np.ndarray:
+    """Points on the body's surfaces in the camera frame at the pruning pose (3 mm apart), the
+    tool's within the jaw zone of the cut left out."""
+    w, h, d = body.camera_size
+    travel = standoff - body.tool_reach
+    pts = []
+    for z in np.arange(-d, travel + 1e-9, 0.003):
+        for x in np.arange(-w / 2, w / 2 + 1e-9, 0.003):
+            pts += [[x, -h / 2, z], [x, h / 2, z]]
+        for y in np.arange(-h / 2, h / 2 + 1e-9, 0.003):
+            pts += [[-w / 2, y, z], [w / 2, y, z]]
+    for x in np.arange(-w / 2, w / 2 + 1e-9, 0.003):
+        for y in np.arange(-h / 2, h / 2 + 1e-9, 0.003):
+            pts += [[x, y, -d], [x, y, travel]]
+    ring = np.linspace(0, 2 * math.pi, 24, endpoint=False)
+    r = body.tool_radius
+    for z in np.arange(0, standoff + 1e-9, 0.003):
+        if standoff - z < body.jaw_zone + r:
+            continue
+        pts += [[r * math.cos(a), r * math.sin(a), z] for a in ring]
+    return np.array(pts)
+
+
+class Checker:
+    """The body's distance to the mesh (Open3D), independent of the search's vertex test."""
+
+    def __init__(self, twin: Twin, cfg: SearchConfig) -> None:
+        o3d = _lazy.open3d()
+        m = twin.load_mesh()
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
+                                 o3d.core.Tensor(np.asarray(m.faces, np.uint32)))  # fmt: skip
+        self.B = body_points(cfg.standoff, cfg.body)
+        self.tensor = o3d.core.Tensor
+
+    def distance(self, T: np.ndarray) -> float:
+        W = (self.B @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        d = self.scene.compute_distance(self.tensor(W)).numpy()
+        inside = self.scene.compute_occupancy(self.tensor(W)).numpy() > 0.5
+        return float(np.where(inside, -d, d).min())
+
+
+def reference_points(twin: Twin, pose_ids: list[str]) -> list[int]:
+    from vinetwin.render.backends import scene_backend
+    from vinetwin.render.reference import reference_for
+
+    m = twin.load_mesh()
+    backend = scene_backend(np.asarray(m.vertices), np.asarray(m.faces), twin.camera)
+    try:
+        return [len(reference_for(twin, pid, use_exported=False, renderer=backend).cloud)
+                for pid in pose_ids]  # fmt: skip
+    finally:
+        backend.close()
+
+
+def run_plant(name: str, rule: str, work: Path) -> dict[str, Any]:
+    root = work / f"{name}_{rule}.twin"
+    twin = make_twin(name, root)
+    cfg = ProposeConfig(rule=RuleConfig(rule=rule))  # type: ignore[arg-type]
+    t0 = time.perf_counter()
+    try:
+        result = propose(twin, cfg)
+    except Exception as exc:  # a rule that refuses a plant is a result
+        return {"plant": name, "rule": rule, "error": str(exc)[:200]}
+    secs = time.perf_counter() - t0
+    twin = Twin.load(root)
+    check = Checker(twin, cfg.search)
+    dists, dflt_dists, posed = [], [], []
+    default_bad = fixed = 0
+    for r in result.rows:
+        cut = twin.cut_point(r["id"])
+        Td = pruning_pose(cut.point, cut.cane_axis, None)
+        dd = check.distance(Td)
+        dflt_dists.append(dd)
+        d = r["default"]
+        bad = dd <= 0 or not d["cut_seen"] or d["visible"] < cfg.search.min_visible
+        default_bad += bad
+        if "pose_id" in r:
+            posed.append(r["pose_id"])
+            dists.append(check.distance(np.asarray(twin.pose(r["pose_id"]).T_vine_camera)))
+            fixed += bad
+    refs = reference_points(twin, posed)
+    clear = [r["search"]["clearance_m"] for r in result.rows if "search" in r]
+    return {
+        "plant": name, "rule": rule, "seconds": round(secs, 2), **result.counts(),
+        "shorten": sum(r["action"] == "shorten" for r in result.rows),
+        "remove": sum(r["action"] == "remove" for r in result.rows),
+        "no_pose_reasons": [r["pose"] for r in result.rows if r["pose"] != "found"],
+        "median_clearance_mm": round(1000 * float(np.median(clear)), 2) if clear else None,
+        "collisions": int(sum(d <= 0 for d in dists)),
+        "min_body_distance_mm": round(1000 * min(dists), 2) if dists else None,
+        "median_reference_points": int(np.median(refs)) if refs else 0,
+        "min_reference_points": int(min(refs)) if refs else 0,
+        "default_colliding": int(sum(d <= 0 for d in dflt_dists)),
+        "default_bad": int(default_bad), "default_bad_fixed": int(fixed),
+    }  # fmt: skip
+
+
+def agreement(name: str, work: Path) -> dict[str, Any]:
+    """Proposals on a twin imported from a simulated scan against those on the true twin."""
+    from scan_accuracy import truth_skeleton, write_ply
+
+    from vinetwin.scan.config import ScanImportConfig
+    from vinetwin.scan.importer import import_scan
+    from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
+    from vinetwin.twin.skeleton import DEFAULT_INTERNODE, tube_mesh
+
+    truth = _sample3() if name == "sample" else truth_skeleton(name)
+    V, F = tube_mesh(truth, edge=0.003, caps="round")
+    wire = float(truth.branches[0].points[-1][2])
+    P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], 0, wire_height=wire)
+    T_scan_vine = scanner_frame(0)
+    f = work / f"{name}_scan.ply"
+    write_ply(f, (P @ T_scan_vine[:3, :3].T + T_scan_vine[:3, 3]) * 1000.0)
+    twin_s, scan = import_scan(f, work / f"{name}_scan.twin", ScanImportConfig(), overwrite=True)
+    T = scan.T_vine_scan @ T_scan_vine  # the truth's vine frame -> the scan twin's
+    true_twin = make_twin(name, work / f"{name}_true.twin")
+    out: dict[str, Any] = {"plant": name}
+    for label, internode in (("same_internode", DEFAULT_INTERNODE), ("true_nodes", 0.0)):
+        for tw in (twin_s, true_twin):
+            for c in list(tw.cut_points):
+                tw.delete_cut_point(c.id)
+        cfg_s = ProposeConfig(rule=RuleConfig(internode=DEFAULT_INTERNODE), replace=True)
+        cfg_t = ProposeConfig(rule=RuleConfig(internode=internode), replace=True)
+        ours = propose(twin_s, cfg_s)
+        theirs = propose(true_twin, cfg_t)
+        p_ours = np.array([twin_s.cut_point(r["id"]).point for r in ours.rows]).reshape(-1, 3)
+        p_true = np.array([true_twin.cut_point(r["id"]).point for r in theirs.rows]).reshape(-1, 3)
+        p_true = p_true @ T[:3, :3].T + T[:3, 3]
+        matched, used = 0, set()
+        for p in p_true:  # one to one, nearest first
+            d = np.linalg.norm(p_ours - p, axis=1) if len(p_ours) else np.zeros(0)
+            for j in np.argsort(d):
+                if d[j] > 0.01:
+                    break
+                if j not in used:
+                    used.add(int(j))
+                    matched += 1
+                    break
+        out[label] = {"true": len(p_true), "ours": len(p_ours), "matched": matched,
+                      "share": round(matched / max(len(p_true), 1), 3),
+                      "missing": len(p_true) - matched, "extra": len(p_ours) - len(used)}  # fmt: skip
+    return out
+
+
+def _sample3() -> Any:
+    from vinetwin.twin.generator import generate_vine
+
+    return generate_vine(3)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--plants", nargs="*", default=list(PLANTS))
+    ap.add_argument("--rules", nargs="*", default=["spur", "cane"])
+    ap.add_argument("--agreement", action="store_true", help="also the scanned-twin agreement")
+    ap.add_argument("--keep", type=Path, help="leave the proposed twins in this folder")
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args()
+    rows, agree = [], []
+    work = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="propose-"))
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        print("| plant | rule | cuts (shorten/remove) | posed | no pose | s | median clearance mm "
+              "| collisions (min mm) | ref points median (min) | default poses colliding / bad "
+              "| bad fixed |")  # fmt: skip
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        for name in a.plants:
+            for rule in a.rules:
+                r = run_plant(name, rule, work)
+                rows.append(r)
+                if "error" in r:
+                    print(f"| {name} | {rule} | refused: {r['error']} |", flush=True)
+                    continue
+                print(f"| {name} | {rule} | {r['proposed']} ({r['shorten']}/{r['remove']}) "
+                      f"| {r['with_pose']} | {r['without_pose']} | {r['seconds']:.1f} "
+                      f"| {r['median_clearance_mm']} | {r['collisions']} ({r['min_body_distance_mm']}) "
+                      f"| {r['median_reference_points']} ({r['min_reference_points']}) "
+                      f"| {r['default_colliding']} / {r['default_bad']} | {r['default_bad_fixed']} |",
+                      flush=True)  # fmt: skip
+        if a.agreement:
+            print("\n| plant | same internode: matched / true (missing, extra) | true nodes: "
+                  "matched / true (missing, extra) |\n|---|---|---|")  # fmt: skip
+            for name in [p for p in a.plants if p != "apple_spindle"]:
+                g = agreement(name, work)
+                agree.append(g)
+                s, t = g["same_internode"], g["true_nodes"]
+                print(f"| {name} | {s['matched']}/{s['true']} = {s['share']:.0%} ({s['missing']}, "
+                      f"{s['extra']}) | {t['matched']}/{t['true']} = {t['share']:.0%} "
+                      f"({t['missing']}, {t['extra']}) |", flush=True)  # fmt: skip
+    finally:
+        if not a.keep:
+            shutil.rmtree(work, ignore_errors=True)
+    if a.json:
+        a.json.write_text(json.dumps({"machine": machine(), "rows": rows, "agreement": agree},
+                                     indent=1))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
