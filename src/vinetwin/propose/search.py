@@ -127,13 +127,14 @@ def body_distance(Q: Array, standoff: float, body: BodyConfig, exempt: Array) ->
     return np.minimum(box, tool)
 
 
-def approaches(cane_axis: Array, cfg: SearchConfig) -> list[Approach]:
-    """The grid of approach directions across the cane (at least `min_cross` from it)."""
+def approaches(cane_axis: Array, cfg: SearchConfig, fine: int = 1) -> list[Approach]:
+    """The grid of approach directions across the cane (at least `min_cross` from it);
+    `fine` > 1 divides each step of the grid that many times."""
     a0, a1 = np.radians(cfg.azimuth_range)
     e0, e1 = np.radians(cfg.elevation_range)
     out = []
-    for az in np.linspace(a0, a1, cfg.azimuths):
-        for el in np.linspace(e0, e1, cfg.elevations):
+    for az in np.linspace(a0, a1, (cfg.azimuths - 1) * fine + 1):
+        for el in np.linspace(e0, e1, (cfg.elevations - 1) * fine + 1):
             d = direction_from_angles(float(az), float(el))
             if abs(float(d @ cane_axis)) <= math.cos(math.radians(cfg.min_cross)) + 1e-9:
                 out.append(Approach(cfg.standoff, float(az), float(el), 0.0))
@@ -154,15 +155,18 @@ def _clearances(
         return out
     Q = obs.points[np.asarray(idx)]
     exempt = np.linalg.norm(Q - cut, axis=1) < body.jaw_zone
-    Ts = np.stack([pruning_pose(cut, axis, ap) for ap in aps])
-    Z, O = Ts[:, :3, 2], Ts[:, :3, 3]
-    t = Q @ Z.T - np.einsum("dj,dj->d", O, Z)  # (N, D): along each optical axis
-    perp2 = (Q * Q).sum(1)[:, None] - 2 * Q @ O.T + (O * O).sum(1)[None] - t * t
-    near = (t > -d - corridor) & (t < cfg.standoff + corridor) & (perp2 < corridor**2)
-    for i in np.nonzero(near.any(axis=0))[0]:
-        k = near[:, i]
-        Qc = (Q[k] - O[i]) @ Ts[i, :3, :3]
-        out[i] = min(float(body_distance(Qc, cfg.standoff, body, exempt[k]).min()), CLEARANCE_CAP)
+    Q2 = (Q * Q).sum(1)[:, None]
+    for j0 in range(0, len(aps), 64):
+        Ts = np.stack([pruning_pose(cut, axis, ap) for ap in aps[j0 : j0 + 64]])
+        Z, O = Ts[:, :3, 2], Ts[:, :3, 3]
+        t = Q @ Z.T - np.einsum("dj,dj->d", O, Z)  # (N, D): along each optical axis
+        perp2 = Q2 - 2 * Q @ O.T + (O * O).sum(1)[None] - t * t
+        near = (t > -d - corridor) & (t < cfg.standoff + corridor) & (perp2 < corridor**2)
+        for i in np.nonzero(near.any(axis=0))[0]:
+            k = near[:, i]
+            Qc = (Q[k] - O[i]) @ Ts[i, :3, :3]
+            dist = float(body_distance(Qc, cfg.standoff, body, exempt[k]).min())
+            out[j0 + i] = min(dist, CLEARANCE_CAP)
     return out
 
 
@@ -205,23 +209,35 @@ def search_pose(
     radius: float,
     cfg: SearchConfig,
 ) -> Found:
-    """The best pruning pose for one cut (see the module's docstring)."""
+    """The best pruning pose for one cut (see the module's docstring): the grid first, then,
+    when no direction of it passes, a grid three times as fine."""
     cut = np.asarray(cut, dtype=np.float64)
     axis = np.asarray(cane_axis, dtype=np.float64)
     axis = axis / np.linalg.norm(axis)
     dflt = default_approach(axis, cfg.standoff)
-    aps = [dflt, *approaches(axis, cfg)]
-    clear = _clearances(obs, cut, axis, aps, cfg)
-    cands = [Candidate(ap, float(cl)) for ap, cl in zip(aps, clear, strict=True)]
-    default, tried = cands[0], cands[1:]
+    default = Candidate(dflt, float(_clearances(obs, cut, axis, [dflt], cfg)[0]))
     _sight(obs, default, cut, axis, cane, radius)
+    found = Found(None, "", default, 0)
+    for fine in (1, 3):
+        aps = approaches(axis, cfg, fine)
+        clear = _clearances(obs, cut, axis, aps, cfg)
+        tried = [Candidate(ap, float(cl)) for ap, cl in zip(aps, clear, strict=True)]
+        found = _choose(obs, tried, default, cut, axis, cane, radius, cfg)
+        if found.best is not None:
+            break
+    return found
+
+
+def _choose(obs: VineObstacles, tried: list[Candidate], default: Candidate, cut: Array,
+            axis: Array, cane: Array, radius: float, cfg: SearchConfig) -> Found:  # fmt: skip
+    """The best of the directions tried, or why none passes."""
     ok = [c for c in tried if c.clearance >= cfg.body.margin]
     if not ok:
         b = max(tried, key=lambda c: c.clearance) if tried else default
         return Found(None, f"no approach keeps {cfg.body.margin * 1000:.0f} mm from the vine "
                            f"(best {b.clearance * 1000:.1f} mm of {len(tried)} tried)",
                      default, len(tried))  # fmt: skip
-    d0 = direction_from_angles(dflt.azimuth, dflt.elevation)
+    d0 = direction_from_angles(default.approach.azimuth, default.approach.elevation)
     for c in ok:
         _sight(obs, c, cut, axis, cane, radius)
         d = direction_from_angles(c.approach.azimuth, c.approach.elevation)
