@@ -14,6 +14,7 @@ export's chain), the time to propose, and:
 
     .venv/bin/python benchmarks/propose.py [--plants sample dense ...] [--rules spur cane]
         [--agreement] [--keep DIR] [--json benchmarks/results/propose.json]
+        [--picture docs/results/proposals_dense.png]
 
 `--keep DIR` leaves the proposed twins there (for `vinetwin validate DIR --profile field`).
 """
@@ -216,6 +217,51 @@ def _sample3() -> Any:
     return generate_vine(3)
 
 
+def picture(twin_dir: Path, rule: str, out: Path) -> None:
+    """The skeleton with its proposed cuts (green: shortened, red: removed, magenta x: no pose)
+    and each pose's camera and straight approach, from the robot's side and obliquely."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tw = Twin.load(twin_dir)
+    sk = tw.load_skeleton()
+    assert sk is not None
+    P = np.concatenate([b.points for b in sk.branches])
+    lo, hi = P.min(0), P.max(0)
+    mid, half = (lo + hi) / 2, (hi - lo).max() / 2
+    fig = plt.figure(figsize=(13, 7.5))
+    views = [(8, -90, "from the robot's side (-Y)"), (25, -55, "oblique")]
+    for k, (elev, azim, title) in enumerate(views):
+        ax: Any = fig.add_subplot(1, 2, k + 1, projection="3d")
+        for b in sk.branches:
+            lw = {"trunk": 4, "cordon": 3, "spur": 2}.get(b.kind, 1)
+            ax.plot(*b.points.T, color=(0.45, 0.3, 0.2), lw=lw)
+        for c in tw.cut_points:
+            rec = c.extra.get("proposal", {})
+            col = {"shorten": "tab:green", "remove": "tab:red"}.get(rec.get("action"), "k")
+            ax.scatter(*c.point, color=col, s=30, depthshade=False)
+            if rec.get("pose") not in (None, "found"):
+                ax.scatter(*c.point, color="magenta", s=80, marker="x")
+        for p in tw.poses:
+            cut = tw.cut_point(p.cut_point).point
+            o = np.asarray(p.T_vine_camera)[:3, 3]
+            ax.plot(*np.stack([o, cut]).T, color="tab:blue", lw=0.8)
+            ax.scatter(*o, color="tab:blue", s=8, marker="s", depthshade=False)
+        ax.set_xlim(mid[0] - half, mid[0] + half)
+        ax.set_ylim(mid[1] - half, mid[1] + half)
+        ax.set_zlim(max(mid[2] - half, 0.4), mid[2] + 0.8 * half)
+        ax.view_init(elev, azim)
+        ax.set_title(title)
+        ax.set_xlabel("x (m)")
+    fig.suptitle(f"{tw.name}, {rule} rule: {len(tw.cut_points)} cuts (green: shortened, red: "
+                 "removed), blue: the camera at each searched pose and its straight approach")  # fmt: skip
+    fig.tight_layout()
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -225,6 +271,7 @@ def main() -> None:
     ap.add_argument("--agreement", action="store_true", help="also the scanned-twin agreement")
     ap.add_argument("--keep", type=Path, help="leave the proposed twins in this folder")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--picture", type=Path, help="draw the dense vine's spur proposals here")
     a = ap.parse_args()
     rows, agree = [], []
     work = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="propose-"))
@@ -247,6 +294,8 @@ def main() -> None:
                       f"| {r['median_reference_points']} ({r['min_reference_points']}) "
                       f"| {r['default_colliding']} / {r['default_bad']} | {r['default_bad_fixed']} |",
                       flush=True)  # fmt: skip
+        if a.picture and (work / "dense_spur.twin").exists():
+            picture(work / "dense_spur.twin", "spur", a.picture)
         if a.agreement:
             print("\n| plant | same internode: matched / true (missing, extra) | true nodes: "
                   "matched / true (missing, extra) |\n|---|---|---|")  # fmt: skip
