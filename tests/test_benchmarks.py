@@ -204,3 +204,14 @@ def test_sim_benchmark_quick(tmp_path: Path) -> None:
         parts = r["render_ms"] + r["sensor_ms"] + r["servo_step_ms"] + r["rest_ms"]
         assert abs(parts - r["ms_per_frame"]) < 1e-6 * max(1.0, r["ms_per_frame"])
     assert "goal 3x" in proc.stdout
+
+
+def test_propose_benchmark_quick(tmp_path: Path) -> None:
+    """`benchmarks/propose.py` on the sample with the spur rule: every cut has a pose, none
+    collides by the independent check, and references were rendered."""
+    out = tmp_path / "propose.json"
+    _, data = _quick("propose.py", out, "--plants", "sample", "--rules", "spur")
+    (row,) = data["rows"]
+    assert row["proposed"] >= 8 and row["with_pose"] == row["proposed"]
+    assert row["collisions"] == 0 and row["min_body_distance_mm"] > 0
+    assert row["median_reference_points"] > 100

@@ -221,3 +221,34 @@ def test_a_twin_without_a_skeleton_names_the_importers(tmp_path) -> None:
     twin = Twin.create(tmp_path / "bare.twin", V, F)
     with pytest.raises(TwinError, match="import-scan"):
         propose(twin, ProposeConfig())
+
+
+def test_spur_rule_shortens_at_the_generators_own_cuts() -> None:
+    """On a generated vine the kept canes are cut where the generator put its two-bud
+    candidates (from the nodes it grew), and every removal is on a cane of a spur with a kept
+    one; the skeleton's nodes survive a save and load."""
+    from vinetwin.twin.generator import generate_vine
+
+    sk = generate_vine(3)
+    sk = Skeleton.from_json(sk.to_json())
+    assert all(len(b.nodes) for b in sk.branches if b.kind == "cane")
+    cuts = propose_cuts(sk, RuleConfig(rule="spur"))
+    cands = np.array([c.point for c in sk.candidates])
+    shortened = [c for c in cuts if c.action == "shorten"]
+    assert len(shortened) >= 6
+    for c in shortened:  # the generator puts its candidate on a vertex of its 4 mm polyline
+        assert np.linalg.norm(cands - c.point, axis=1).min() < 0.0045, c.reason
+
+
+def test_hydroshoot_shoots_keep_their_nodes() -> None:
+    from tests.conftest import ROOT
+    from vinetwin.twin.importers import load_skeleton
+
+    path = ROOT.parent / "shared/data/vines/hydroshoot/vsp_ww_grapevine/digit.input"
+    if not path.exists():
+        pytest.skip("../shared/data is not here")
+    sk = load_skeleton(path)
+    shoots = [b for b in sk.branches if b.kind == "shoot"]
+    assert shoots and all(len(b.nodes) == len(b.points) - 1 for b in shoots if b.parent >= 0)
+    cuts = propose_cuts(sk, RuleConfig(rule="spur"))
+    assert {c.action for c in cuts} == {"shorten", "remove"}
