@@ -3,6 +3,7 @@ pose search's clearance, idempotence, and bad input."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -252,3 +253,38 @@ def test_hydroshoot_shoots_keep_their_nodes() -> None:
     assert shoots and all(len(b.nodes) == len(b.points) - 1 for b in shoots if b.parent >= 0)
     cuts = propose_cuts(sk, RuleConfig(rule="spur"))
     assert {c.action for c in cuts} == {"shorten", "remove"}
+
+
+def test_the_command_names_bad_options_and_a_missing_skeleton(
+    vine_twin: Twin,
+    tmp_path,
+    caplog: pytest.LogCaptureFixture,
+    capsys: pytest.CaptureFixture[str],  # noqa: ANN001
+) -> None:
+    import logging
+
+    from vinetwin.cli import main
+    from vinetwin.twin.skeleton import tube_mesh
+
+    def said(args: list[str]) -> tuple[int, str]:
+        caplog.clear()
+        capsys.readouterr()
+        with caplog.at_level(logging.INFO, logger="vinetwin"):
+            rc = main(args)
+        out = capsys.readouterr()
+        return rc, caplog.text + out.err + out.out
+
+    before = (vine_twin.root / "twin.json").read_text()
+    for flag, value in (("--buds", "9"), ("--internode", "0.5"), ("--rule", "hedge"),
+                        ("--margin", "-1"), ("--standoff", "nan")):  # fmt: skip
+        rc, text = said(["propose", str(vine_twin.root), flag, value])
+        assert rc == 2 and flag.strip("-").split("-")[0] in text, (flag, text[-400:])
+    assert (vine_twin.root / "twin.json").read_text() == before  # nothing written
+    V, F = tube_mesh(known_vine(), edge=0.004)
+    Twin.create(tmp_path / "bare.twin", V, F)
+    rc, text = said(["propose", str(tmp_path / "bare.twin")])
+    assert rc != 0 and "import-scan" in text
+    out = tmp_path / "p.json"
+    rc, text = said(["propose", str(vine_twin.root), "--replace", "--json", str(out)])
+    assert rc == 0 and "cuts proposed by the spur rule" in text
+    assert json.loads(out.read_text())["counts"]["proposed"] >= 1
