@@ -259,7 +259,7 @@ def test_the_command_names_bad_options_and_a_missing_skeleton(
     vine_twin: Twin,
     tmp_path,
     caplog: pytest.LogCaptureFixture,
-    capsys: pytest.CaptureFixture[str],  # noqa: ANN001
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
     import logging
 
