@@ -126,11 +126,16 @@ def _circle(points: Array, centre: Array, t: Array) -> tuple[Array, float]:
     x, y = q @ u, q @ v
     r0 = float(np.median(np.hypot(x, y)))
     if len(points) >= 10:
+        # the algebraic circle fit's least squares by its 3 x 3 normal equations (an SVD per
+        # slice was most of a large tree's skeleton time)
         A = np.column_stack([2 * x, 2 * y, np.ones_like(x)])
-        sol, *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
+        try:
+            sol = np.linalg.solve(A.T @ A, A.T @ (x * x + y * y))
+        except np.linalg.LinAlgError:
+            sol = np.zeros(3)
         a, b, c = (float(v) for v in sol)
         rr = c + a * a + b * b
-        if rr > 0:
+        if rr > 0 and np.all(np.isfinite(sol)):
             r = math.sqrt(rr)
             ang = np.sort(np.arctan2(y - b, x - a))
             steps = np.diff(np.concatenate([ang, [ang[0] + 2 * math.pi]])).astype(np.float64)
@@ -357,6 +362,10 @@ def merge_slivers(sk: Skeleton) -> Skeleton:
     hangs from it. A piece lying within 1.5 radii (at least 5 mm) of another is a sliver:
     a branch's tail that runs along one of its children is replaced by that child (the child
     continues the branch); a childless side piece running along its parent is dropped."""
+    # pairs already found not to be slivers, by identity (held, so that an id is not reused):
+    # each change restarts the scan, which then skips them (quadratic otherwise on large trees)
+    kept: set[tuple[object, ...]] = set()
+    held: list[Branch] = []
     changed = True
     while changed:
         changed = False
@@ -367,6 +376,10 @@ def merge_slivers(sk: Skeleton) -> Skeleton:
         for i, b in enumerate(sk.branches):
             for c in kids[i]:
                 child = sk.branches[c]
+                # what the test below depends on: the two, whether c has children, c's siblings
+                key = (id(b), id(child), bool(kids[c]), tuple(id(sk.branches[o]) for o in kids[i]))
+                if key in kept:
+                    continue
                 tol = max(1.5 * float(np.median(b.radii)), 0.005)
                 k = int(np.argmin(np.linalg.norm(b.points - child.points[0], axis=1)))
                 tail = b.points[k:]
@@ -383,6 +396,8 @@ def merge_slivers(sk: Skeleton) -> Skeleton:
                     _continue_with(sk, i, k, c)
                     changed = True
                     break
+                kept.add(key)
+                held += [b, child]
             if changed:
                 break
     return sk
