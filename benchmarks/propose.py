@@ -34,8 +34,8 @@ from typing import Any
 import numpy as np
 
 from vinetwin import _lazy
-from vinetwin.propose.config import BodyConfig, ProposeConfig, RuleConfig, SearchConfig
-from vinetwin.propose.proposer import propose
+from vinetwin.plan.config import BodyConfig, ProposeConfig, RuleConfig, SearchConfig
+from vinetwin.plan.proposer import propose
 from vinetwin.twin.model import Twin
 from vinetwin.twin.poses import pruning_pose
 

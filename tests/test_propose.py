@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from vinetwin.errors import InputError, TwinError
-from vinetwin.propose.config import BodyConfig, ProposeConfig, RuleConfig, SearchConfig
-from vinetwin.propose.proposer import is_proposal, propose, review
-from vinetwin.propose.rules import BETWEEN_BUDS, propose_cuts
-from vinetwin.propose.search import VineObstacles, body_distance, search_pose
+from vinetwin.plan.config import BodyConfig, ProposeConfig, RuleConfig, SearchConfig
+from vinetwin.plan.proposer import is_proposal, propose, review
+from vinetwin.plan.rules import BETWEEN_BUDS, propose_cuts
+from vinetwin.plan.search import VineObstacles, body_distance, search_pose
 from vinetwin.twin.model import Twin, twin_from_skeleton
 from vinetwin.twin.poses import Approach, default_approach, pruning_pose
 from vinetwin.twin.skeleton import FIRST_NODE, Branch, Skeleton
@@ -158,7 +158,7 @@ def test_search_refuses_a_pose_inside_a_cane_and_clears_a_blocking_one(vine_twin
     # the pose inside the blocking cane: refused by the same measure
     inside = Approach(cfg.standoff, math.pi / 2, 0.0, 0.0)
     T = pruning_pose(cut, axis, inside)
-    from vinetwin.propose.search import _clearances
+    from vinetwin.plan.search import _clearances
 
     assert _clearances(obs, cut, axis, [inside], cfg)[0] < 0
     assert abs(T[1, 3] - (cut[1] - cfg.standoff)) < 1e-9

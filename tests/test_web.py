@@ -383,8 +383,8 @@ def test_app_reports_a_broken_twin_and_validates_a_pose(twin_dir: Path, tmp_path
 def test_session_proposes_reviews_and_undoes(twin_dir: Path) -> None:
     """Proposals through the editing session: drawn apart, accepted or rejected one or all,
     an undo takes a whole proposal run back."""
-    from vinetwin.propose.config import ProposeConfig, RuleConfig
-    from vinetwin.propose.proposer import describe_cut, is_proposal
+    from vinetwin.plan.config import ProposeConfig, RuleConfig
+    from vinetwin.plan.proposer import describe_cut, is_proposal
     from vinetwin.web.proposals import COLOURS, cut_colour
 
     sess = AuthoringSession(twin_dir)

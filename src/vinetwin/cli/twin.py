@@ -8,8 +8,8 @@ from typing import Annotated
 
 from vinetwin.cli._common import BackendChoice, Nested, Positional, _summary, log
 from vinetwin.executor import ClusterConfig
+from vinetwin.plan.config import ProposeConfig
 from vinetwin.progress import with_progress
-from vinetwin.propose.config import ProposeConfig
 from vinetwin.scan.config import ScanImportConfig
 from vinetwin.twin.generator import SampleConfig
 from vinetwin.twin.importers import ImportVineConfig
@@ -91,7 +91,7 @@ class Propose:
     """Also write the proposals and their scores here."""
 
     def run(self) -> None:
-        from vinetwin.propose.proposer import propose_folder
+        from vinetwin.plan.proposer import propose_folder
 
         propose_folder(self.twin, self.config, json_path=self.json, echo=print)
 

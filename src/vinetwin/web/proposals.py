@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from vinetwin.propose.config import (
+from vinetwin.plan.config import (
     CANE_BUDS_RANGE,
     INTERNODE_RANGE,
     RULES,
@@ -22,13 +22,13 @@ COLOURS = {"proposed": (200, 0, 200), "cut": (230, 30, 30), "pose_proposed": (30
 
 
 def cut_colour(cut: Any) -> tuple[int, int, int]:
-    from vinetwin.propose.proposer import is_proposal
+    from vinetwin.plan.proposer import is_proposal
 
     return COLOURS["proposed"] if is_proposal(cut, "proposed") else COLOURS["cut"]
 
 
 def pose_colour(cut: Any, selected: bool) -> tuple[int, int, int]:
-    from vinetwin.propose.proposer import is_proposal
+    from vinetwin.plan.proposer import is_proposal
 
     if selected:
         return COLOURS["selected"]
@@ -81,7 +81,7 @@ def _propose(app: Any) -> None:
 
 def status(app: Any) -> str:
     """The proposals' line and the selected cut's status."""
-    from vinetwin.propose.proposer import describe_cut, is_proposal
+    from vinetwin.plan.proposer import describe_cut, is_proposal
 
     twin = app.session.twin
     if twin is None:

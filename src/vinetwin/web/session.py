@@ -202,7 +202,7 @@ class AuthoringSession:
     # ------------------------------------------------------------------ proposals
     def obstacles(self) -> Any:
         """The vine as the pose search sees it (built once)."""
-        from vinetwin.propose.search import VineObstacles
+        from vinetwin.plan.search import VineObstacles
 
         if self._obstacles is None:
             self._obstacles = VineObstacles(self.vertices, self.faces, self._require().camera)
@@ -211,7 +211,7 @@ class AuthoringSession:
     def propose(self, cfg: Any) -> Any:
         """Cut proposals by a rule (`propose.proposer.propose`), an edit like any other (undo
         removes them all); returns the `ProposeResult`."""
-        from vinetwin.propose.proposer import propose
+        from vinetwin.plan.proposer import propose
 
         twin = self._edit()
         try:
@@ -228,7 +228,7 @@ class AuthoringSession:
 
     def review(self, accept: bool, all_proposals: bool = False) -> list[str]:
         """Accepts or rejects the selected pose's proposal (or every open one)."""
-        from vinetwin.propose.proposer import review
+        from vinetwin.plan.proposer import review
 
         twin = self._require()
         if all_proposals:

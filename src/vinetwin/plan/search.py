@@ -30,7 +30,7 @@ import numpy as np
 from vinetwin import _lazy
 from vinetwin.camera import CameraModel
 from vinetwin.frames import Array
-from vinetwin.propose.config import BodyConfig, SearchConfig
+from vinetwin.plan.config import BodyConfig, SearchConfig
 from vinetwin.twin.poses import (
     Approach,
     default_approach,

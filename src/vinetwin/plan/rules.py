@@ -33,7 +33,7 @@ import numpy as np
 
 from vinetwin.errors import InputError
 from vinetwin.frames import Array
-from vinetwin.propose.config import RuleConfig
+from vinetwin.plan.config import RuleConfig
 from vinetwin.twin.skeleton import (
     FIRST_NODE,
     PERMANENT,

@@ -23,9 +23,9 @@ import numpy as np
 
 from vinetwin.errors import InputError, TwinError
 from vinetwin.files import atomic_write_text
-from vinetwin.propose.config import ProposeConfig
-from vinetwin.propose.rules import propose_cuts
-from vinetwin.propose.search import VineObstacles, search_pose
+from vinetwin.plan.config import ProposeConfig
+from vinetwin.plan.rules import propose_cuts
+from vinetwin.plan.search import VineObstacles, search_pose
 from vinetwin.twin.model import CutPoint, Twin
 
 #: A proposal this close (m) to a cut point already in the twin is that cut.
