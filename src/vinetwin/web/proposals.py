@@ -53,7 +53,7 @@ def add_panel(app: Any) -> Any:
         app.internode = g.add_number("internode (m; 0: the skeleton's nodes)", rule.internode,
                                      min=0.0, max=INTERNODE_RANGE[1], step=0.005)  # fmt: skip
         app.propose_btn = g.add_button("Propose cuts (replaces open proposals)")
-        app.propose_btn.on_click(on(lambda: _propose(app)))
+        app.propose_btn.on_click(lambda _: app._in_thread(lambda: _propose(app)))
         app.accept_btn = g.add_button("Accept selected")
         app.accept_btn.on_click(on(lambda: sess.review(True)))
         app.reject_btn = g.add_button("Reject selected")
@@ -66,17 +66,29 @@ def add_panel(app: Any) -> Any:
 
 
 def _propose(app: Any) -> None:
-    cfg = ProposeConfig(
-        rule=RuleConfig(rule=app.rule.value, buds=int(app.buds.value),
-                        cane_buds=int(app.cane_buds.value), internode=float(app.internode.value)),
-        replace=True,
-    )  # fmt: skip
-    result = app.session.propose(cfg)
-    c = result.counts()
-    app.proposal_summary = (
-        f"{c['proposed']} cuts proposed ({c['with_pose']} with a pose, {c['without_pose']} "
-        f"without) in {result.seconds:.1f} s; {c['already_there']} already there."
-    )
+    """Proposes in a thread of its own (a dense vine takes seconds): the panel says so
+    meanwhile; an error shows in the status line."""
+    from vinetwin.errors import VinetwinError
+
+    app.proposal_status.content = "*Proposing cuts and searching their poses...*"
+    with app.lock:
+        try:
+            cfg = ProposeConfig(
+                rule=RuleConfig(rule=app.rule.value, buds=int(app.buds.value),
+                                cane_buds=int(app.cane_buds.value),
+                                internode=float(app.internode.value)),
+                replace=True,
+            )  # fmt: skip
+            result = app.session.propose(cfg)
+            c = result.counts()
+            app.proposal_summary = (
+                f"{c['proposed']} cuts proposed ({c['with_pose']} with a pose, "
+                f"{c['without_pose']} without) in {result.seconds:.1f} s; "
+                f"{c['already_there']} already there."
+            )
+        except VinetwinError as exc:
+            app.session.problem = str(exc)
+        app.refresh()
 
 
 def status(app: Any) -> str:
