@@ -364,3 +364,31 @@ def test_a_field_twin_that_missed_the_pose_is_refused_by_name() -> None:
     check_field_twin_view(both, here, cam, FieldProfile(), "p1", T)
     with pytest.raises(VinetwinError, match=r"0% .* pose 'p1'.*\"twin_trajectory\": \"poses\""):
         check_field_twin_view(both, elsewhere, cam, FieldProfile(), "p1", T)
+
+
+def test_validate_refuses_a_pose_its_field_twin_does_not_show(
+    sample_twin_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`validate --profile field` on a vine whose rebuilt twin misses a pose (a large vine swept
+    from one side): the pose is refused by name with the remedy before any run, and the map
+    says so, instead of four runs stopping "lost the vine" on an empty reference."""
+    import shutil
+
+    import trimesh
+
+    import vinetwin.sim.field as field_mod
+    from vinetwin.errors import VinetwinError
+    from vinetwin.sim.config import ValidateConfig
+    from vinetwin.sim.validate import validate_folder
+
+    twin_dir = tmp_path / "vine.twin"
+    shutil.copytree(sample_twin_dir, twin_dir)
+    far = tmp_path / "far.ply"
+    trimesh.creation.box((0.2, 0.2, 0.01), fr.make_pose(t=[5.0, 5.0, 5.0])).export(far)
+    monkeypatch.setattr(field_mod, "reconstructed_twin", lambda *a, **k: (far, {}))
+    cfg = ValidateConfig(profile="field", poses=("p1",), variants=("point_to_plane",), starts=1,
+                         workers=1)  # fmt: skip
+    with pytest.raises(VinetwinError, match=r"field twin rebuilt.*pose 'p1'.*twin_trajectory"):
+        validate_folder(twin_dir, cfg)
+    summary = (twin_dir / "validation" / "field" / "summary.md").read_text()
+    assert "not in the field twin's view" in summary
