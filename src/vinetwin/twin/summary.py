@@ -32,11 +32,29 @@ def print_summary(twin: Twin, mesh: bool = True) -> None:
             f"{p.standoff:.3f}",
             escape(p.icp_variant),
             f"{t[0]:+.3f} {t[1]:+.3f} {t[2]:+.3f}",
-            escape(servo_ability(p.extra.get("validation"), p.icp_variant)),
+            escape(_all_profiles(p.extra, p.icp_variant)),
         )
-    con.print(f"{len(twin.cut_points)} cut points, {len(twin.poses)} pruning poses")
+    status = [c.extra["proposal"].get("status") for c in twin.cut_points
+              if isinstance(c.extra.get("proposal"), dict)]  # fmt: skip
+    props = (
+        f" ({status.count('proposed')} proposals open, {status.count('accepted')} accepted: "
+        "`vinetwin web` reviews them)"
+        if status
+        else ""
+    )
+    con.print(f"{len(twin.cut_points)} cut points{props}, {len(twin.poses)} pruning poses")
     if twin.poses:
         con.print(table)
+
+
+def _all_profiles(extra: dict[str, object], variant: str) -> str:
+    """The pose's servo-ability under each profile it was validated with (ideal first)."""
+    keys = sorted(k for k in extra if k.startswith("validation")) or ["validation"]
+    return "; ".join(
+        ("" if k == "validation" else f"{k.removeprefix('validation_')}: ")
+        + servo_ability(extra.get(k), variant)
+        for k in keys
+    )
 
 
 def servo_ability(validation: object, variant: str) -> str:
