@@ -264,7 +264,13 @@ class App:
         )  # fmt: skip
 
     def refresh(self) -> None:
-        """Redraws cut points and poses and the side panel from the session."""
+        """Redraws cut points and poses and the side panel from the session, under the app's
+        lock (reentrant): two refreshes at once (the warm-up's and a caller's) would add and
+        remove the same scene nodes."""
+        with self.lock:
+            self._refresh()
+
+    def _refresh(self) -> None:
         sess = self.session
         twin = sess.twin
         msg = (
