@@ -260,18 +260,11 @@ def test_the_command_names_bad_options_and_a_missing_skeleton(
     caplog: pytest.LogCaptureFixture,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    import logging
-
-    from vinetwin.cli import main
+    from tests.test_envelope import said as said_by
     from vinetwin.twin.skeleton import tube_mesh
 
     def said(args: list[str]) -> tuple[int, str]:
-        caplog.clear()
-        capsys.readouterr()
-        with caplog.at_level(logging.INFO, logger="vinetwin"):
-            rc = main(args)
-        out = capsys.readouterr()
-        return rc, caplog.text + out.err + out.out
+        return said_by(args, caplog, capsys)
 
     before = (vine_twin.root / "twin.json").read_text()
     for flag, value in (("--buds", "9"), ("--internode", "0.5"), ("--rule", "hedge"),
