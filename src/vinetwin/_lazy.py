@@ -16,3 +16,13 @@ def open3d() -> Any:
 def mujoco() -> Any:
     """The mujoco module."""
     return importlib.import_module("mujoco")
+
+
+def module(name: str, needed_for: str) -> Any:
+    """An optional library, or an InputError that says what needs it and how to install it."""
+    try:
+        return importlib.import_module(name)
+    except ImportError as exc:
+        from vinetwin.errors import InputError
+
+        raise InputError(f"{needed_for} needs the `{name}` package: {exc}") from exc

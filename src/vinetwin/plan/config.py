@@ -10,6 +10,7 @@ from typing import Literal
 
 from vinetwin._config import JsonFields, check_finite
 from vinetwin.errors import InputError
+from vinetwin.twin.model import TOOL_REACH
 from vinetwin.twin.poses import DEFAULT_STANDOFF, STANDOFF_RANGE
 from vinetwin.twin.skeleton import DEFAULT_INTERNODE
 
@@ -88,7 +89,7 @@ class BodyConfig(JsonFields):
     """Camera body (m): width, height, depth."""
     tool_radius: float = 0.010
     """Radius (m) of the tool along its straight approach."""
-    tool_reach: float = 0.07
+    tool_reach: float = TOOL_REACH
     """From the camera to the blade (m) along the optical axis."""
     jaw_zone: float = 0.025
     """Vine within this distance (m) of the cut point is the cane being cut."""

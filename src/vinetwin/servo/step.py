@@ -173,6 +173,12 @@ class Servo:
         `reset`; the identity if none)."""
         return np.eye(4) if self._guess is None else self._guess.copy()
 
+    @property
+    def estimate(self) -> Array | None:
+        """T_ref_cur of the last trusted frame: where the servo believes the camera is relative
+        to the reference camera (None before the first)."""
+        return None if self._trusted_T is None else self._trusted_T.copy()
+
     def warm_up(self, depth: Any) -> None:
         """Compiles what a frame will run (perception, the ICP levels, the tight ICP and the wide
         search: numba kernels compile on their first call, 10-30 s on a fresh install) on a depth

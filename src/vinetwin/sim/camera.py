@@ -60,6 +60,10 @@ class SimCameraSource(MeshCamera):
         if draw.sensor is not None:
             self.sensor = draw.sensor
 
+    def vine_at(self, t: float) -> Array:
+        """Where the vine is at simulated time t (its disturbance and wind) in its own frame."""
+        return self._vine(t)
+
     def _vine(self, t: float) -> Array:
         M = self.vine_offset @ self.disturbance.vine_motion(t)
         return M if self.field is None else M @ self.field.vine_wind(t)

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin import _lazy
+from vinetwin.arm import ACCELERATION_LIMITS, FLANGE_OFFSET, VELOCITY_LIMITS
 from vinetwin.camera import CameraModel
 from vinetwin.conventions import mujoco_camera_pos_quat, mujoco_fovy_deg, quat_wxyz_from_matrix
 from vinetwin.errors import InputError
@@ -35,11 +36,6 @@ from vinetwin.twin.model import DEFAULT_T_FLANGE_CAMERA
 
 PANDA_DIR = Path(__file__).resolve().parent / "assets" / "panda"
 ARM_JOINTS = tuple(f"joint{i}" for i in range(1, 8))
-#: Franka's published joint velocity limits (rad/s), used when a model does not carry them.
-VELOCITY_LIMITS = (2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61)
-#: Franka's joint acceleration limits (rad/s^2, the Panda's datasheet).
-ACCELERATION_LIMITS = (15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0)
-FLANGE_OFFSET = 0.107
 
 
 def _wxyz(R: Array) -> list[float]:

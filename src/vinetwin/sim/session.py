@@ -145,6 +145,9 @@ class SimSpec:
     """The arm: None, the free-flying camera; "" vinetwin's Panda; else a Panda model file."""
     watchdog: float | None = None
     """The simulated arm's command watchdog (s; None: the limits' own)."""
+    arm_q: tuple[float, ...] | None = None
+    """The arm's joints at the start (where a transit left it; `start` must be where they put
+    the camera); None: the arm reaches `start` by inverse kinematics."""
 
     def to_dict(self) -> dict[str, Any]:
         """The run as plain data (its digest's input: a campaign's resumed runs)."""
@@ -153,7 +156,7 @@ class SimSpec:
             v = getattr(self, f.name)
             if isinstance(v, SimConfig | Disturbance):
                 v = v.to_dict()
-            elif v is not None and f.name in ("goal", "start", "cut"):
+            elif v is not None and f.name in ("goal", "start", "cut", "arm_q"):
                 v = np.asarray(v, float).tolist()
             out[f.name] = v
         return out
@@ -201,7 +204,11 @@ class SimSpec:
         else:
             T_base_vine = np.asarray(arm.T_base_vine, float)
             arm.dynamics = cfg.profile.on("dynamics")
-            ok, dt_, dr_ = arm.reach(T_base_vine @ start)
+            if self.arm_q is not None:
+                arm.set_q(self.arm_q)
+                ok, dt_, dr_ = True, 0.0, 0.0
+            else:
+                ok, dt_, dr_ = arm.reach(T_base_vine @ start)
             if not ok:
                 raise InputError(
                     f"the arm cannot reach the start pose ({1000 * dt_:.1f} mm, {dr_:.3f} rad "

@@ -81,6 +81,9 @@ class SimRun:
     """The longest streak of refused frames (s, first to last refused stamp)."""
     faults: dict[str, Any] | None = None
     """With fault injection: what was injected and how the servo coped (`faults.fault_summary`)."""
+    session: Any = field(default=None, repr=False)
+    """The run's live `SimSession` when `simulate(keep=True)` (the caller goes on driving its
+    arm and closes it)."""
 
     def summary(self) -> dict[str, Any]:
         cfg = self.config
@@ -146,6 +149,7 @@ def simulate(
     *,
     log: CycleLog | None = None,
     record: str | Path | None = None,
+    keep: bool = False,
 ) -> SimRun:
     """One closed-loop run (`spec`, built on `world` by `SimSpec.setup`) through
     `loop.run_loop`, the loop that drives hardware.
@@ -154,7 +158,8 @@ def simulate(
     start pose (a start it cannot reach raises InputError), then each twist drives its joints.
     Without it the camera flies freely. `log` receives every cycle (with the true error);
     `record` writes the frames, with their stamps and robot poses, as a capture folder that
-    `FolderSource` replays."""
+    `FolderSource` replays. `keep` leaves the session in `SimRun.session` (the whole job goes on
+    to cut with the same arm and field draw)."""
     cfg = spec.config
     camera = world.backend.camera
     goal = np.asarray(spec.goal, float)
@@ -231,6 +236,8 @@ def simulate(
     run.reacquisitions = summary.reacquisitions
     run.lost = summary.lost or summary.stalled
     run.longest_refusal_s = longest_refusal(run.t, run.trusted)
+    if keep:
+        run.session = rig
     if faulty is not None:
         from vinetwin.sim.faults import fault_summary
 

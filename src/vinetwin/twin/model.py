@@ -3,6 +3,7 @@
 ```
 NAME.twin/
   twin.json        format version, units, mesh file, T_world_vine, camera, T_flange_camera,
+                   T_flange_tool (optional),
                    cut points, pruning poses, perception settings, provenance
   vine.ply         the mesh, metres, vine frame
   skeleton.json    optional: branches and cut-point candidates (generator, importers)
@@ -77,6 +78,12 @@ def check_id(value: Any, what: str = "id") -> str:
 #: Default hand-eye transform: a D405 on the Panda hand, 5 cm off the flange axis and 4 cm along
 #: it, looking along the flange's +Z. Replace it with your calibration.
 DEFAULT_T_FLANGE_CAMERA: Array = make_pose(np.eye(3), [0.05, 0.0, 0.04])
+#: From the camera to the pruning tool's blade (m), along the optical axis: the D405's minimum
+#: depth (7 cm), so the cut stays in view until the blade is on it.
+TOOL_REACH = 0.07
+#: Default tool frame on the flange: its origin is the blade point, TOOL_REACH ahead of the camera
+#: on its optical axis, its +Z the direction the blade moves in. Replace it with your tool's.
+DEFAULT_T_FLANGE_TOOL: Array = DEFAULT_T_FLANGE_CAMERA @ make_pose(np.eye(3), [0.0, 0.0, TOOL_REACH])
 
 
 # ----------------------------------------------------------------------------- entities
@@ -192,6 +199,7 @@ _TOP_KEYS = {
     "T_world_vine",
     "camera",
     "T_flange_camera",
+    "T_flange_tool",
     "cut_points",
     "pruning_poses",
     "perception",
@@ -212,6 +220,8 @@ class Twin:
     T_world_vine: Array = field(default_factory=lambda: np.eye(4))
     camera: CameraModel = field(default_factory=d405)
     T_flange_camera: Array = field(default_factory=lambda: DEFAULT_T_FLANGE_CAMERA.copy())
+    T_flange_tool: Array = field(default_factory=lambda: DEFAULT_T_FLANGE_TOOL.copy())
+    """The pruning tool on the flange: its origin is the blade point (`prune` closes it there)."""
     cut_points: list[CutPoint] = field(default_factory=list)
     poses: list[PruningPose] = field(default_factory=list)
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
@@ -398,6 +408,11 @@ class Twin:
             T_world_vine=f.pose(data, "T_world_vine", ""),
             camera=camera,
             T_flange_camera=f.pose(data, "T_flange_camera", ""),
+            T_flange_tool=(
+                f.pose(data, "T_flange_tool", "")
+                if "T_flange_tool" in data
+                else DEFAULT_T_FLANGE_TOOL.copy()
+            ),
             cut_points=cut_points,
             poses=poses,
             perception=PerceptionConfig.from_dict(perc_data),
@@ -420,6 +435,7 @@ class Twin:
             "T_world_vine": np.asarray(self.T_world_vine).tolist(),
             "camera": self.camera.to_dict(),
             "T_flange_camera": np.asarray(self.T_flange_camera).tolist(),
+            "T_flange_tool": np.asarray(self.T_flange_tool).tolist(),
             "cut_points": [c.to_json() for c in self.cut_points],
             "pruning_poses": [p.to_json() for p in self.poses],
             "perception": self.perception.to_dict(),

@@ -1,0 +1,161 @@
+"""Compiled collision queries of the arm's spheres against the vine's vertices (a spatial hash of
+cells) and the platform's deck and the ground: the planner's validity check, a few microseconds
+per configuration."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from vinetwin._numba import nb
+from vinetwin.arm import _frames
+from vinetwin.frames import Array
+
+
+def build_hash(V: Array, origin: Array, cell: float, shape: Array) -> tuple[Array, Array]:
+    """(starts, order): the vertices of flat cell c are order[starts[c]:starts[c + 1]]."""
+    idx = np.floor((V - origin) / cell).astype(np.int64)
+    flat = (idx[:, 0] * shape[1] + idx[:, 1]) * shape[2] + idx[:, 2]
+    order = np.argsort(flat, kind="stable")
+    starts = np.searchsorted(flat[order], np.arange(int(np.prod(shape)) + 1)).astype(np.int64)
+    return starts, order.astype(np.int64)
+
+
+@nb.njit(cache=True)
+def nearest_vertex(
+    p: Array, reach: float, V: Array, origin: Array, cell: float, shape: Array,
+    starts: Array, order: Array,
+) -> float:  # pragma: no cover - compiled  # fmt: skip
+    """Distance from p to the nearest vertex, if within `reach`; else `reach`."""
+    best = reach * reach
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for a in range(3):
+        lo[a] = max(0, int(math.floor((p[a] - reach - origin[a]) / cell)))
+        hi[a] = min(shape[a] - 1, int(math.floor((p[a] + reach - origin[a]) / cell)))
+        if lo[a] > hi[a]:
+            return reach
+    for i in range(lo[0], hi[0] + 1):
+        for j in range(lo[1], hi[1] + 1):
+            base = (i * shape[1] + j) * shape[2]
+            for k in range(lo[2], hi[2] + 1):
+                c = base + k
+                for m in range(starts[c], starts[c + 1]):
+                    v = order[m]
+                    dx = V[v, 0] - p[0]
+                    dy = V[v, 1] - p[1]
+                    dz = V[v, 2] - p[2]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < best:
+                        best = d2
+    return math.sqrt(best)
+
+
+@nb.njit(cache=True)
+def point_gaps(
+    P: Array, radii: Array, reach: float, V: Array, origin: Array, cell: float, shape: Array,
+    starts: Array, order: Array, deck_lo: Array, deck_hi: Array, out: Array,
+) -> None:  # pragma: no cover - compiled  # fmt: skip
+    """out[k, 0]: sphere k's gap to the nearest vine vertex (at most `reach`), out[k, 1] to the
+    deck (an axis-aligned box), out[k, 2] to the ground (z = 0); P in the vine frame."""
+    for k in range(len(radii)):
+        p = P[k]
+        r = radii[k]
+        out[k, 0] = nearest_vertex(p, reach + r, V, origin, cell, shape, starts, order) - r
+        s = 0.0
+        for a in range(3):
+            e = max(deck_lo[a] - p[a], p[a] - deck_hi[a], 0.0)
+            s += e * e
+        out[k, 1] = math.sqrt(s) - r
+        out[k, 2] = p[2] - r
+
+
+@nb.njit(cache=True)
+def arm_points(
+    q: Array, T_vine_base: Array, frame: Array, local: Array, points: Array
+) -> None:  # pragma: no cover - compiled
+    """points[k]: the centre of sphere k (on frame[k] at local[k]) in the vine frame."""
+    F = np.empty((9, 4, 4))
+    _frames(q, F)
+    for f in range(9):
+        F[f] = T_vine_base @ F[f]
+    for k in range(len(frame)):
+        M = F[frame[k]]
+        for a in range(3):
+            points[k, a] = (
+                M[a, 0] * local[k, 0] + M[a, 1] * local[k, 1] + M[a, 2] * local[k, 2] + M[a, 3]
+            )
+
+
+def build_blocks(starts: Array, shape: Array, factor: int) -> Array:
+    """Which blocks of factor^3 cells hold a vertex."""
+    counts = (starts[1:] - starts[:-1]).reshape(tuple(shape)) > 0
+    bs = (np.asarray(shape) + factor - 1) // factor
+    pad = bs * factor - np.asarray(shape)
+    c = np.pad(counts, [(0, int(p)) for p in pad])
+    return c.reshape(bs[0], factor, bs[1], factor, bs[2], factor).any(axis=(1, 3, 5))
+
+
+@nb.njit(cache=True)
+def _any_vertex_within(
+    p: Array, R: float, V: Array, origin: Array, cell: float, shape: Array, starts: Array,
+    order: Array, blocks: Array, factor: int,
+) -> bool:  # pragma: no cover - compiled  # fmt: skip
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for a in range(3):
+        lo[a] = max(0, int(math.floor((p[a] - R - origin[a]) / cell)))
+        hi[a] = min(shape[a] - 1, int(math.floor((p[a] + R - origin[a]) / cell)))
+        if lo[a] > hi[a]:
+            return False
+    occupied = False  # the coarse blocks first
+    for bi in range(lo[0] // factor, hi[0] // factor + 1):
+        for bj in range(lo[1] // factor, hi[1] // factor + 1):
+            for bk in range(lo[2] // factor, hi[2] // factor + 1):
+                if blocks[bi, bj, bk]:
+                    occupied = True
+    if not occupied:
+        return False
+    R2 = R * R
+    for i in range(lo[0], hi[0] + 1):
+        for j in range(lo[1], hi[1] + 1):
+            base = (i * shape[1] + j) * shape[2]
+            for k in range(lo[2], hi[2] + 1):
+                c = base + k
+                for m in range(starts[c], starts[c + 1]):
+                    v = order[m]
+                    dx = V[v, 0] - p[0]
+                    dy = V[v, 1] - p[1]
+                    dz = V[v, 2] - p[2]
+                    if dx * dx + dy * dy + dz * dz < R2:
+                        return True
+    return False
+
+
+@nb.njit(cache=True)
+def arm_valid(
+    q: Array, T_vine_base: Array, frame: Array, local: Array, radii: Array, clearance: float,
+    bound: float, V: Array, origin: Array, cell: float, shape: Array, starts: Array,
+    order: Array, blocks: Array, factor: int, deck_lo: Array, deck_hi: Array,
+) -> bool:  # pragma: no cover - compiled  # fmt: skip
+    """Whether every sphere at joints q keeps `clearance` from the vine (no vertex within
+    radius + clearance + bound), the deck and the ground."""
+    P = np.empty((len(radii), 3))
+    arm_points(q, T_vine_base, frame, local, P)
+    for k in range(len(radii)):
+        p = P[k]
+        need = radii[k] + clearance
+        if p[2] < need:
+            return False
+        s = 0.0
+        for a in range(3):
+            e = max(deck_lo[a] - p[a], p[a] - deck_hi[a], 0.0)
+            s += e * e
+        if s < need * need:
+            return False
+    for k in range(len(radii)):  # the vine last: the dearest
+        if _any_vertex_within(P[k], radii[k] + clearance + bound, V, origin, cell, shape,
+                              starts, order, blocks, factor):  # fmt: skip
+            return False
+    return True

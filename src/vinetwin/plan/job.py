@@ -1,0 +1,151 @@
+"""A vine's pruning plan (`plan_vine`): for every pruning pose, the platform stops from which the
+arm reaches it and its straight approach; the fewest stops that cover them; each pose done from
+the chosen stop that reaches it best; the order at each stop; the poses no stop reaches, with
+the reason. Transits between the poses are planned when the job runs (`plan.transit`), from
+wherever the arm is after the previous cut."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from vinetwin.arm import STOW, ArmModel
+from vinetwin.errors import InputError
+from vinetwin.frames import Array
+from vinetwin.plan.config import BodyConfig
+from vinetwin.plan.job_config import JobConfig
+from vinetwin.plan.reach import (
+    Collider,
+    CutReach,
+    VinePlan,
+    candidate_stops,
+    choose_stops,
+    order_cuts,
+    reach_cut,
+    stop_pose,
+)
+from vinetwin.twin.model import Twin
+
+#: Stops tried per pose, nearest first, stop once this many reach it (the set cover rarely
+#: needs more choice than that, and the stops beyond cost most: their IK fails).
+MAX_STOPS_PER_POSE = 5
+
+
+@dataclass
+class Planner:
+    """What a plan is made with: the arm model, the obstacles and the settings."""
+
+    arm: ArmModel
+    collider: Collider
+    cfg: JobConfig
+    body: BodyConfig
+
+    @classmethod
+    def for_twin(
+        cls,
+        twin: Twin,
+        cfg: JobConfig | None = None,
+        body: BodyConfig | None = None,
+        mesh: Any = None,
+    ) -> Planner:
+        """The twin's arm (its hand-eye and tool transforms) among its mesh (or `mesh`: the
+        vertices and faces the robot believes)."""
+        cfg = cfg or JobConfig()
+        body = body or BodyConfig()
+        if mesh is None:
+            m = twin.load_mesh()
+            mesh = (m.vertices, m.faces)
+        arm = ArmModel(twin.T_flange_camera, twin.T_flange_tool, tool_radius=body.tool_radius)
+        return cls(arm, Collider(mesh[0], mesh[1], cfg.platform), cfg, body)
+
+    def valid(self, q: Array) -> bool:
+        """Joints q clear of every obstacle by `reach.clearance` at the current stop."""
+        return self.collider.arm_clear(self.arm, q, self.cfg.reach.clearance)
+
+
+def plan_vine(twin: Twin, planner: Planner, pose_ids: list[str] | None = None) -> VinePlan:
+    """The plan for the twin's pruning poses (or `pose_ids`)."""
+    t0 = time.perf_counter()
+    cfg = planner.cfg
+    poses = twin.poses if pose_ids is None else [twin.pose(p) for p in pose_ids]
+    if not poses:
+        raise InputError(
+            f"{twin.root}: the twin has no pruning poses; add some with `vinetwin propose`, "
+            "`vinetwin poses` or the web app"
+        )
+    rng = np.random.default_rng(cfg.seed)
+    plan = VinePlan()
+    reach: dict[str, dict[float, CutReach]] = {}
+    reasons: dict[str, dict[str, int]] = {}
+    for pose in poses:
+        cut = twin.cut_point(pose.cut_point).point
+        T = np.asarray(pose.T_vine_camera, float)
+        stops = candidate_stops([float(cut[0])], cfg)
+        stops.sort(key=lambda s: abs(s - float(T[0, 3])))
+        found: dict[float, CutReach] = {}
+        why: dict[str, int] = {}
+        warm: list[Array] = []
+        for s in stops:
+            if len(found) >= MAX_STOPS_PER_POSE:
+                break
+            T_vine_base = stop_pose(s, cfg.platform)
+            planner.collider.at_stop(T_vine_base)
+            plan.tried += 1
+            r = reach_cut(
+                planner.arm, planner.collider, T, cut, T_vine_base, cfg, planner.body.margin,
+                planner.body.jaw_zone, warm, rng,
+            )  # fmt: skip
+            if isinstance(r, str):
+                why[r] = why.get(r, 0) + 1
+                continue
+            q_pose, q_cut, manip, gap = r
+            warm = [q_pose]
+            found[s] = CutReach(pose.cut_point, pose.id, s, q_pose, q_cut, manip, gap)
+        reach[pose.id] = found
+        reasons[pose.id] = why
+        if not found:
+            common = max(why, key=lambda k: why[k]) if why else "no stop within reach"
+            plan.unreachable[pose.id] = f"no platform stop reaches it ({common})"
+    plan.stops = choose_stops(reach)
+    for s in plan.stops:
+        plan.order[s] = []
+    for pid, by_stop in reach.items():
+        here = [s for s in plan.stops if s in by_stop]
+        if here:
+            best = max(here, key=lambda s: by_stop[s].manipulability)
+            plan.order[best].append(by_stop[best])
+    for s in plan.stops:
+        plan.order[s] = order_cuts(STOW, plan.order[s], planner.arm.vmax)
+        _follow_on(twin, planner, s, plan.order[s], rng)
+    plan.planning_s = time.perf_counter() - t0
+    return plan
+
+
+def _follow_on(
+    twin: Twin, planner: Planner, stop: float, items: list[CutReach], rng: np.random.Generator
+) -> None:
+    """Each pose's joints re-solved from the previous pose's in the order (from `STOW`), kept
+    when they are nearer in time: consecutive poses then share an arm configuration family
+    instead of whichever branch the search met first, and the transits stay short."""
+    from vinetwin.plan.reach import joint_time
+
+    cfg = planner.cfg
+    T_vine_base = stop_pose(stop, cfg.platform)
+    planner.collider.at_stop(T_vine_base)
+    arm = planner.arm
+    prev = STOW
+    for k, r in enumerate(items):
+        pose = twin.pose(r.pose)
+        cut = twin.cut_point(pose.cut_point).point
+        got = reach_cut(
+            arm, planner.collider, np.asarray(pose.T_vine_camera, float), cut, T_vine_base,
+            cfg, planner.body.margin, planner.body.jaw_zone, [prev], rng,
+        )  # fmt: skip
+        if not isinstance(got, str) and joint_time(prev, got[0], arm.vmax) < joint_time(
+            prev, r.q_pose, arm.vmax
+        ):
+            items[k] = CutReach(r.cut, r.pose, r.stop, got[0], got[1], got[2], got[3])
+        prev = items[k].q_pose

@@ -1,0 +1,296 @@
+"""Where the arm can prune from: the obstacles (`Collider`: the vine's mesh with exact distances,
+the platform's deck, the ground), which platform stops reach each cut's pruning pose and its
+straight approach (`reach_cut`), the fewest stops that cover the reachable cuts (`choose_stops`)
+and the cut order at a stop (`order_cuts`).
+
+A cut is reachable from a stop when the arm's inverse kinematics puts the camera at the pruning
+pose within the joint limits (less `ReachConfig.limit_margin`) and above the manipulability
+floor, the straight approach that brings the blade onto the cut point stays reachable step by
+step without a jump in the joints, and no collision sphere of the arm, camera or tool comes
+closer than the body margin to the vine, the deck or the ground there (the tool's spheres may
+touch the cane within the jaw zone of the cut point: that is the cut)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from vinetwin import _lazy
+from vinetwin.arm import HOME, STOW, ArmModel, base_pose
+from vinetwin.plan._collide_kernels import (
+    arm_valid,
+    build_blocks,
+    build_hash,
+    point_gaps,
+)
+from vinetwin.errors import InputError
+from vinetwin.frames import Array, invert, make_pose, transform_points
+from vinetwin.plan.job_config import JobConfig, PlatformConfig
+
+#: The largest joint jump (rad) between neighbouring steps of a straight approach.
+MAX_JOINT_JUMP = 0.3
+#: The spatial hash's cell (m), and its blocks (cells per side) that skip empty space.
+GRID_CELL = 0.02
+BLOCK = 4
+#: Spheres nearer the vine than this (m) get the exact distance.
+NEAR = 0.02
+
+
+class Collider:
+    """The obstacles in the vine frame: the vine's mesh, the ground (z = 0) and the platform's
+    deck under the base at each stop.
+
+    Two queries: a conservative one for the planner (`arm_clear`: each sphere's distance to the
+    mesh's nearest vertex, less what the surface between vertices can come closer, from a
+    compiled spatial hash: microseconds), and an exact one for judging contacts (`clearance`:
+    Open3D's point-to-triangle distances for the spheres the first finds near)."""
+
+    def __init__(self, vertices: Any, faces: Any, platform: PlatformConfig) -> None:
+        o3d = _lazy.open3d()
+        V = np.ascontiguousarray(vertices, dtype=float)
+        F = np.asarray(faces, np.int64)
+        if len(V) == 0 or len(F) == 0:
+            raise InputError("the vine mesh is empty: nothing to plan around")
+        edges = np.linalg.norm(V[F[:, [1, 2, 0]]] - V[F], axis=2)
+        self.bound = float(edges.max()) / math.sqrt(3.0)
+        """The surface may come this much closer than its nearest vertex (a triangle's points
+        lie within its circumradius, at most its longest edge / sqrt(3), of a corner)."""
+        self.V = V
+        self.origin = V.min(0) - GRID_CELL
+        self.shape = (np.ceil((V.max(0) - self.origin) / GRID_CELL).astype(np.int64) + 2)
+        self.starts, self.order = build_hash(V, self.origin, GRID_CELL, self.shape)
+        self.blocks = build_blocks(self.starts, self.shape, BLOCK)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(
+            o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32))
+        )
+        self._o3d = o3d
+        self.platform = platform
+        self.at_stop(np.eye(4))
+
+    def at_stop(self, T_vine_base: Array) -> None:
+        self.T_vine_base = np.ascontiguousarray(T_vine_base, dtype=float)
+        b = self.T_vine_base[:3, 3]
+        L, W = self.platform.deck
+        self.deck_lo = np.array([b[0] - L / 2, b[1] - W / 2, -1e9])
+        self.deck_hi = np.array([b[0] + L / 2, b[1] + W / 2, b[2]])
+
+    def gaps(self, points_vine: Array, radii: Array, reach: float = NEAR) -> Array:
+        """(N, 3) gaps of spheres (centres in the vine frame) to the vine (a lower bound, at
+        most `reach`), the deck and the ground."""
+        P = np.ascontiguousarray(points_vine, dtype=float).reshape(-1, 3)
+        out = np.empty((len(P), 3))
+        point_gaps(P, np.asarray(radii, float), reach + self.bound, self.V, self.origin,
+                   GRID_CELL, self.shape, self.starts, self.order, self.deck_lo, self.deck_hi,
+                   out)  # fmt: skip
+        out[:, 0] -= self.bound
+        return out
+
+    def arm_clear(self, arm: ArmModel, q: Array, clearance: float) -> bool:
+        """Every sphere of the arm at joints q at least `clearance` from every obstacle
+        (conservative: no vine vertex within the sphere's radius, the clearance and what the
+        surface between vertices can come closer)."""
+        s = arm.spheres
+        return bool(arm_valid(np.asarray(q, float), self.T_vine_base, s.frame, s.centre,
+                              s.radius, clearance, self.bound, self.V, self.origin, GRID_CELL,
+                              self.shape, self.starts, self.order, self.blocks, BLOCK,
+                              self.deck_lo, self.deck_hi))  # fmt: skip
+
+    def clearance(
+        self,
+        centres_base: Array,
+        radii: Array,
+        exempt: tuple[Array, float, Array] | None = None,
+    ) -> tuple[float, int, str]:
+        """The smallest gap (m) between the spheres (centres in the base) and any obstacle,
+        exact for the vine where it is under `NEAR`, with the sphere that has it and the
+        obstacle ("vine", "deck", "ground"). `exempt` = (cut point, jaw zone, mask): the masked
+        spheres' contacts with the vine within the jaw zone of the cut point do not count."""
+        P = transform_points(self.T_vine_base, centres_base)
+        radii = np.asarray(radii, float)
+        g = self.gaps(P, radii)
+        near = g[:, 0] < NEAR
+        if near.any():
+            o3d = self._o3d
+            cp = self.scene.compute_closest_points(o3d.core.Tensor(P[near].astype(np.float32)))
+            closest = cp["points"].numpy().astype(float)
+            exact = np.linalg.norm(closest - P[near], axis=1) - radii[near]
+            if exempt is not None:
+                cut, zone, mask = exempt
+                inside = np.linalg.norm(closest - cut, axis=1) < zone
+                exact = np.where(mask[near] & inside, np.inf, exact)
+            g[near, 0] = exact
+        k = np.unravel_index(int(np.argmin(g)), g.shape)
+        return float(g[k]), int(k[0]), ("vine", "deck", "ground")[int(k[1])]
+
+
+@dataclass
+class CutReach:
+    """How the arm reaches one cut from one stop."""
+
+    cut: str
+    pose: str
+    stop: float
+    """The platform's position along the row (m)."""
+    q_pose: Array
+    """Joints at the pruning pose."""
+    q_cut: Array
+    """Joints with the blade on the cut point (the approach's end)."""
+    manipulability: float
+    clearance: float
+    """Smallest gap (m) to the vine, deck or ground at the pose and along the approach."""
+
+
+@dataclass
+class VinePlan:
+    """A vine's plan: the stops, the cuts done at each in order, and the cuts no stop reaches,
+    with the reason."""
+
+    stops: list[float] = field(default_factory=list)
+    order: dict[float, list[CutReach]] = field(default_factory=dict)
+    unreachable: dict[str, str] = field(default_factory=dict)
+    """pose id -> why no stop reaches it."""
+    planning_s: float = 0.0
+    tried: int = 0
+    """(pose, stop) pairs tried."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "stops": self.stops,
+            "order": [
+                {"stop": s, "poses": [r.pose for r in self.order.get(s, [])]} for s in self.stops
+            ],
+            "unreachable": self.unreachable,
+            "planning_s": self.planning_s,
+        }
+
+
+def stop_pose(x: float, platform: PlatformConfig) -> Array:
+    """T_vine_base at the stop x: on the -Y side, facing the row (+Y)."""
+    return base_pose(x, -platform.offset, platform.height, math.pi / 2)
+
+
+def reach_cut(
+    arm: ArmModel,
+    collider: Collider,
+    T_vine_camera: Array,
+    cut: Array,
+    T_vine_base: Array,
+    cfg: JobConfig,
+    margin: float,
+    jaw_zone: float,
+    warm: list[Array],
+    rng: np.random.Generator,
+    prefer: Array | None = None,
+) -> tuple[Array, Array, float, float] | str:
+    """(q at the pose, q with the blade on the cut, manipulability, clearance) from the base at
+    T_vine_base, or the reason it cannot. Of the inverse kinematics solutions the seeds (`warm`,
+    `HOME`, random ones) reach, the one nearest `prefer` (default: the first warm seed, else
+    `STOW`) in joint time whose approach is clear is taken."""
+    rc = cfg.reach
+    T_base_vine = invert(T_vine_base)
+    T_pose = T_base_vine @ np.asarray(T_vine_camera, float)
+    cut_base = transform_points(T_base_vine, np.asarray(cut, float)[None])[0]
+    seeds = [*warm, HOME] + [rng.uniform(arm.lower, arm.upper) for _ in range(rc.seeds)]
+    found = arm.solutions(T_pose, seeds, min_manipulability=rc.min_manipulability,
+                          limit_margin=rc.limit_margin)  # fmt: skip
+    if not found:
+        return "no inverse kinematics solution within the joint limits, away from singularities"
+    ref = prefer if prefer is not None else (warm[0] if warm else STOW)
+    found.sort(key=lambda q: joint_time(ref, q, arm.vmax))
+    why = ""
+    for q in found:
+        got = _approach(arm, collider, T_pose, cut, cut_base, q, cfg, margin, jaw_zone)
+        if not isinstance(got, str):
+            return got
+        why = why or got
+    return why
+
+
+def _approach(
+    arm: ArmModel, collider: Collider, T_pose: Array, cut: Array, cut_base: Array, q: Array,
+    cfg: JobConfig, margin: float, jaw_zone: float,
+) -> tuple[Array, Array, float, float] | str:  # fmt: skip
+    """The straight approach from joints q at the pose: reachable step by step, clear."""
+    rc = cfg.reach
+    travel = cut_base - arm.blade(q)
+    qs = [q]
+    for k in range(1, rc.approach_steps + 1):
+        T_k = make_pose(T_pose[:3, :3], T_pose[:3, 3] + travel * k / rc.approach_steps)
+        qk = arm.solve(T_k, [qs[-1]], limit_margin=rc.limit_margin)
+        if qk is None or np.max(np.abs(qk - qs[-1])) > MAX_JOINT_JUMP:
+            return f"the straight approach leaves the arm's reach {k}/{rc.approach_steps} of the way in"
+        qs.append(qk)
+    s = arm.spheres
+    tool = np.array([p == "tool" for p in s.part])
+    worst = math.inf
+    for k, qk in enumerate(qs):
+        exempt = (np.asarray(cut, float), jaw_zone, tool) if k > 0 else None
+        gap, i, what = collider.clearance(arm.sphere_centres(qk), s.radius, exempt)
+        worst = min(worst, gap)
+        if gap < margin:
+            where = "at the pose" if k == 0 else f"{k}/{rc.approach_steps} of the way in"
+            return f"the {s.part[i]} comes within {1000 * max(gap, 0):.0f} mm of the {what} {where}"
+    return q, qs[-1], arm.manipulability(q), worst
+
+
+def candidate_stops(cut_xs: list[float], cfg: JobConfig) -> list[float]:
+    """Stops every `platform.spacing` along the row, within `reach.max_reach` of the cuts."""
+    if not cut_xs:
+        return []
+    sp = cfg.platform.spacing
+    lo = math.floor((min(cut_xs) - cfg.reach.max_reach) / sp)
+    hi = math.ceil((max(cut_xs) + cfg.reach.max_reach) / sp)
+    return [round(k * sp, 6) for k in range(lo, hi + 1)]
+
+
+def choose_stops(reach: dict[str, dict[float, Any]]) -> list[float]:
+    """The fewest stops covering every reachable pose: greedy set cover (each step the stop that
+    reaches most of the poses left; ties to the one with the better-conditioned poses), sorted
+    along the row."""
+    left = {p for p, by_stop in reach.items() if by_stop}
+    chosen: list[float] = []
+    while left:
+        counts: dict[float, tuple[int, float]] = {}
+        for p in left:
+            for s, r in reach[p].items():
+                n, m = counts.get(s, (0, 0.0))
+                counts[s] = (n + 1, m + r.manipulability)
+        best = max(counts, key=lambda s: (counts[s], -abs(s)))
+        chosen.append(best)
+        left -= {p for p in left if best in reach[p]}
+    return sorted(chosen)
+
+
+def joint_time(a: Array, b: Array, vmax: Array) -> float:
+    """A transit's time at full speed, ignoring acceleration: the slowest joint's."""
+    return float(np.max(np.abs(np.asarray(b) - np.asarray(a)) / vmax))
+
+
+def order_cuts(start: Array, items: list[CutReach], vmax: Array) -> list[CutReach]:
+    """A short joint-space tour from `start` through the cuts and back: nearest neighbour, then
+    2-opt."""
+    if len(items) < 2:
+        return list(items)
+    nodes = [np.asarray(start, float)] + [r.q_pose for r in items]
+    n = len(nodes)
+    D = np.array([[joint_time(a, b, vmax) for b in nodes] for a in nodes])
+    tour, left = [0], set(range(1, n))
+    while left:
+        nxt = min(left, key=lambda j: D[tour[-1], j])
+        tour.append(nxt)
+        left.remove(nxt)
+    tour.append(0)
+    improved = True
+    while improved:
+        improved = False
+        for i in range(1, n - 1):
+            for j in range(i + 1, n):
+                a, b, c, d = tour[i - 1], tour[i], tour[j], tour[j + 1]
+                if D[a, c] + D[b, d] < D[a, b] + D[c, d] - 1e-9:
+                    tour[i : j + 1] = tour[i : j + 1][::-1]
+                    improved = True
+    return [items[k - 1] for k in tour[1:-1]]

@@ -1,0 +1,179 @@
+"""Collision-free transits between two arm configurations: a joint-space path planned by OMPL
+(RRT-Connect by default, then OMPL's path simplifier) against a validity check the caller gives
+(`plan.reach.Collider.arm_clear`), each straight segment then timed by ruckig within the Panda's
+joint velocity, acceleration and jerk limits. Segments are timed rest to rest with ruckig's
+phase synchronisation, so the arm follows the checked straight segments exactly; the timed
+trajectory is checked again, densely, before it is returned."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vinetwin import _lazy
+from vinetwin.frames import Array
+from vinetwin.plan.job_config import TransitConfig
+
+
+@dataclass
+class Transit:
+    """A timed joint-space path: straight segments between `waypoints`, each rest to rest."""
+
+    waypoints: list[Array]
+    durations: list[float] = field(default_factory=list)
+    planning_s: float = 0.0
+    """Compute spent planning and timing it (s)."""
+    checks: int = 0
+    """Collision checks the planner made."""
+    _trajectories: list[object] = field(default_factory=list, repr=False)
+
+    @property
+    def duration(self) -> float:
+        return float(sum(self.durations))
+
+    def at(self, t: float) -> Array:
+        """Joints at time t (s) from the start (clamped to the ends)."""
+        if not self._trajectories:
+            return np.asarray(self.waypoints[-1], float)
+        for traj, d in zip(self._trajectories, self.durations, strict=True):
+            if t <= d:
+                return np.asarray(traj.at_time(max(t, 0.0))[0], float)  # type: ignore[attr-defined]
+            t -= d
+        return np.asarray(self.waypoints[-1], float)
+
+    def samples(self, dt: float) -> tuple[Array, Array]:
+        """(times, joints) every dt s, both ends included."""
+        n = max(2, math.ceil(self.duration / dt) + 1)
+        ts = np.linspace(0.0, self.duration, n)
+        return ts, np.array([self.at(t) for t in ts])
+
+
+class PlanningFailed(Exception):
+    """No collision-free path within the planner's time."""
+
+
+def _segment_ok(
+    q0: Array, q1: Array, valid: Callable[[Array], bool], step: float
+) -> tuple[bool, int]:
+    n = max(1, math.ceil(float(np.max(np.abs(q1 - q0))) / step))
+    for k in range(1, n + 1):
+        if not valid(q0 + (q1 - q0) * k / n):
+            return False, k
+    return True, n
+
+
+def time_path(waypoints: list[Array], vmax: Array, amax: Array, jmax: Array) -> Transit:
+    """Each segment timed rest to rest by ruckig (phase-synchronised: a straight line in joint
+    space)."""
+    ruckig = _lazy.module("ruckig", "the transit timing (pip install ruckig)")
+    out = Transit([np.asarray(w, float) for w in waypoints])
+    otg = ruckig.Ruckig(7)
+    for a, b in zip(out.waypoints[:-1], out.waypoints[1:], strict=True):
+        inp = ruckig.InputParameter(7)
+        inp.current_position = a.tolist()
+        inp.target_position = b.tolist()
+        inp.max_velocity = vmax.tolist()
+        inp.max_acceleration = amax.tolist()
+        inp.max_jerk = jmax.tolist()
+        inp.synchronization = ruckig.Synchronization.Phase
+        traj = ruckig.Trajectory(7)
+        result = otg.calculate(inp, traj)
+        if result not in (ruckig.Result.Working, ruckig.Result.Finished):
+            raise PlanningFailed(f"ruckig could not time a segment ({result})")
+        out._trajectories.append(traj)
+        out.durations.append(float(traj.duration))
+    return out
+
+
+def plan_transit(
+    q0: Array,
+    q1: Array,
+    valid: Callable[[Array], bool],
+    lower: Array,
+    upper: Array,
+    limits: tuple[Array, Array, Array],
+    cfg: TransitConfig,
+    seed: int = 0,
+    via: list[list[Array]] | None = None,
+) -> Transit:
+    """A timed collision-free path from q0 to q1 (both must be valid). The straight segment is
+    kept when it is free, else the first chain of `via` waypoints (backing off along the
+    approach, for instance) whose straight segments are free; else OMPL's `cfg.planner`
+    searches for `cfg.timeout` s and its path is simplified. Raises PlanningFailed with the
+    reason."""
+    t0 = time.perf_counter()
+    q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
+    checks = [0]
+
+    def counted(q: Array) -> bool:
+        checks[0] += 1
+        return valid(q)
+
+    for name, q in (("start", q0), ("goal", q1)):
+        if not counted(q):
+            raise PlanningFailed(f"the transit's {name} configuration collides")
+    path: list[Array] | None = None
+    for chain in [[], *(via or [])]:
+        cand = [q0, *[np.asarray(w, float) for w in chain], q1]
+        if all(counted(w) for w in cand[1:-1]) and all(
+            _segment_ok(a, b, counted, cfg.resolution)[0]
+            for a, b in zip(cand[:-1], cand[1:], strict=True)
+        ):
+            path = cand
+            break
+    if path is None:
+        path = _ompl_path(q0, q1, counted, lower, upper, cfg, seed)
+    scale = cfg.speed
+    vmax, amax, jmax = limits
+    transit = time_path(path, vmax * scale, amax * scale, jmax * scale)
+    # the timed trajectory, checked again at the resolution
+    for a, b in zip(path[:-1], path[1:], strict=True):
+        ok, _ = _segment_ok(a, b, counted, cfg.resolution)
+        if not ok:
+            raise PlanningFailed("the simplified path collides (planner resolution too coarse)")
+    transit.checks = checks[0]
+    transit.planning_s = time.perf_counter() - t0
+    return transit
+
+
+def _ompl_path(
+    q0: Array,
+    q1: Array,
+    valid: Callable[[Array], bool],
+    lower: Array,
+    upper: Array,
+    cfg: TransitConfig,
+    seed: int,
+) -> list[Array]:
+    ompl = _lazy.module("ompl", "transit planning (pip install ompl)")
+    ob, og, ou = ompl.base, ompl.geometric, ompl.util
+    ou.setLogLevel(ou.LogLevel.LOG_WARN)
+    if hasattr(ou, "RNG"):
+        ou.RNG.setSeed(int(seed) + 1)
+    space = ob.RealVectorStateSpace(7)
+    bounds = ob.RealVectorBounds(7)
+    for i in range(7):
+        bounds.setLow(i, float(lower[i]))
+        bounds.setHigh(i, float(upper[i]))
+    space.setBounds(bounds)
+    ss = og.SimpleSetup(space)
+    ss.setStateValidityChecker(lambda s: valid(np.array([s[i] for i in range(7)])))
+    si = ss.getSpaceInformation()
+    # OMPL's resolution is a share of the space's extent; ours is a joint step
+    si.setStateValidityCheckingResolution(cfg.resolution / si.getMaximumExtent())
+    start, goal = space.allocState(), space.allocState()
+    for i in range(7):
+        start[i], goal[i] = float(q0[i]), float(q1[i])
+    ss.setStartAndGoalStates(start, goal)
+    ss.setPlanner(getattr(og, cfg.planner)(si))
+    solved = ss.solve(cfg.timeout)
+    if not ss.haveExactSolutionPath():
+        raise PlanningFailed(f"{cfg.planner} found no collision-free path in {cfg.timeout} s "
+                             f"({solved})")  # fmt: skip
+    ss.simplifySolution(min(0.2, cfg.timeout))
+    p = ss.getSolutionPath()
+    return [np.array([p.getState(k)[i] for i in range(7)]) for k in range(p.getStateCount())]

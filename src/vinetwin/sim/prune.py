@@ -1,0 +1,450 @@
+"""The whole pruning job in simulation (`vinetwin prune`): a vine's plan (`plan.job`), then at
+each platform stop, for each cut in order: a planned collision-free transit, the ICP-PBVS servo
+to the pruning pose (`sim.session.SimSpec`, the one place a simulated servo run is built), the
+cut (the tool moves straight in until the robot believes its blade is on the cut point, closes,
+and retreats along the same line), then the next cut.
+
+What the robot believes and what is true are kept apart:
+- the transit ends where the robot's belief puts the pruning pose; the true camera is off by the
+  registration error of the platform's localisation of the vine (the field profile's
+  `registration` source, else `SimConfig`'s default 5 mm / 0.02 rad);
+- the servo then sees the true vine (and, under the field profile, refers to a reference from a
+  reconstructed twin; hand-eye, kinematic, timing, wind and depth errors as `sim.field` draws);
+- the straight cut is computed from the servo's last trusted alignment and the robot's hand-eye
+  belief, executed by the simulated arm, and judged by the blade's TRUE position against the
+  TRUE cut point (swayed by the wind at the moment the blade closes): `blade_error_m`.
+
+Contacts are counted on the actual mesh (Open3D's exact distances to its triangles) for every
+collision sphere of the arm, camera and tool (`vinetwin.arm`): along each transit every 20 ms of
+its timing, during the servo for the camera, mount and tool at each frame (and the whole arm at
+its end), along the cut and the retreat (where the tool may touch the cane within the jaw zone
+of its own cut point: the cut). Any other contact is a collision.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from vinetwin._config import JsonFields
+from vinetwin.arm import STOW
+from vinetwin.errors import InputError
+from vinetwin.frames import Array, invert, make_pose, so3_exp, transform_points
+from vinetwin.plan.job import Planner, plan_vine
+from vinetwin.plan.job_config import JobConfig
+from vinetwin.plan.reach import Collider, CutReach, stop_pose
+from vinetwin.plan.transit import PlanningFailed, plan_transit
+from vinetwin.sim.config import SimConfig, load_profile
+from vinetwin.twin.model import Twin
+
+SimKind = Literal["kinematic", "mujoco"]
+SIM_KINDS: tuple[SimKind, ...] = ("kinematic", "mujoco")
+#: Contacts are checked along a transit every this many seconds of its timing.
+TRANSIT_CHECK_DT = 0.02
+#: How far (m) a transit's waypoints back the camera off along its optical axis.
+BACKOFF = 0.1
+#: Control period (s) of the straight cut and retreat.
+CUT_DT = 1.0 / 30.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class PruneConfig(JsonFields):
+    """`vinetwin prune`: the simulated arm, the field profile, the servo's time per cut and the
+    plan's settings."""
+
+    sim: SimKind = "mujoco"
+    """kinematic: a free-flying camera (transits still planned for the arm); mujoco: the D405
+    on the MuJoCo Panda."""
+    profile: str = "ideal"
+    """ideal, field, or a JSON file of `FieldProfile` fields."""
+    seed: int = 0
+    servo_duration: float = 10.0
+    """Longest servo per cut (s, simulated); past it the cut is skipped."""
+    settle: float = 0.3
+    """The servo must report being at its goal this long (s) before the tool moves in."""
+    job: JobConfig = field(default_factory=JobConfig)
+
+    def __post_init__(self) -> None:
+        self._nested_from_dicts()
+        if self.sim not in SIM_KINDS:
+            raise InputError(f"unknown sim {self.sim!r}; choose one of: {', '.join(SIM_KINDS)}")
+        if not (0.5 <= self.servo_duration <= 120.0) or not (0.0 <= self.settle <= 5.0):
+            raise InputError("servo_duration must lie in [0.5, 120] s and settle in [0, 5] s")
+
+
+@dataclass
+class _Contacts:
+    """Disallowed contacts: one event per phase and body part that touched."""
+
+    events: list[dict[str, Any]] = field(default_factory=list)
+
+    def check(
+        self, collider: Collider, centres: Array, radii: Array, parts: tuple[str, ...],
+        phase: str, cut: str, exempt: tuple[Array, float, Array] | None = None,
+    ) -> None:  # fmt: skip
+        gap, i, what = collider.clearance(centres, radii, exempt)
+        if gap < 0:
+            key = (phase, cut, parts[i], what)
+            if not any(
+                (e["phase"], e["cut"], e["part"], e["obstacle"]) == key for e in self.events
+            ):
+                self.events.append({"phase": phase, "cut": cut, "part": parts[i],
+                                    "obstacle": what, "depth_mm": round(-1000 * gap, 2)})  # fmt: skip
+
+
+class _Job:
+    """One vine's job: the twin, the truth and the robot's belief, the arm, the clocks."""
+
+    def __init__(self, twin: Twin, cfg: PruneConfig) -> None:
+        from vinetwin.render.backends import raycaster, scene_backend
+        from vinetwin.sim.field import reconstructed_twin
+
+        self.twin, self.cfg = twin, cfg
+        self.profile = load_profile(cfg.profile)
+        true = twin.load_mesh()
+        self.V, self.F = np.asarray(true.vertices), np.asarray(true.faces)
+        robot_mesh = (self.V, self.F)
+        self.reference_backend = None
+        if self.profile.on("twin"):
+            from vinetwin.mesh import load_mesh
+
+            path, _ = reconstructed_twin(twin, self.profile, cfg.seed, twin.root / "field_twins")
+            rm = load_mesh(path)
+            robot_mesh = (np.asarray(rm.vertices), np.asarray(rm.faces))
+            self.reference_backend = raycaster(rm.vertices, rm.faces, twin.camera)
+        self.planner = Planner.for_twin(twin, cfg.job, mesh=robot_mesh)
+        self.truth = Collider(self.V, self.F, cfg.job.platform)
+        self.backend = scene_backend(self.V, self.F, twin.camera)
+        self.arm = None
+        if cfg.sim == "mujoco":
+            from vinetwin.sim.panda import PandaArm
+
+            self.arm = PandaArm(T_flange_camera=twin.T_flange_camera, camera=twin.camera,
+                                vine=(self.V, self.F))  # fmt: skip
+        self.contacts = _Contacts()
+        self.rng = np.random.default_rng([cfg.seed, 45])
+        base = SimConfig()
+        from vinetwin.sim.field import registration_error
+
+        self.reg = registration_error(
+            self.profile,
+            (base.registration_error_translation, base.registration_error_rotation),
+        )
+        s = self.planner.arm.spheres
+        self.tool_mask = np.array([p == "tool" for p in s.part])
+        self.flange_fixed = s.frame == 8
+
+    def close(self) -> None:
+        self.backend.close()
+        if self.reference_backend is not None:
+            self.reference_backend.close()
+
+    # --------------------------------------------------------------- bodies
+    def _arm_spheres(self, q: Array) -> Array:
+        return self.planner.arm.sphere_centres(q)
+
+    def _flange_spheres(self, T_base_camera: Array) -> Array:
+        """The flange-fixed spheres (mount, camera, tool) with the camera at T_base_camera."""
+        arm = self.planner.arm
+        s = arm.spheres
+        F = T_base_camera @ invert(arm.T_flange_camera)
+        c = s.centre[self.flange_fixed]
+        return c @ F[:3, :3].T + F[:3, 3]
+
+    def check_pose(self, q: Array | None, T_base_camera: Array, phase: str, cut: str,
+                   exempt_cut: Array | None = None) -> None:  # fmt: skip
+        s = self.planner.arm.spheres
+        exempt = None
+        if q is not None:
+            if exempt_cut is not None:
+                exempt = (exempt_cut, self.planner.body.jaw_zone, self.tool_mask)
+            self.contacts.check(self.truth, self._arm_spheres(q), s.radius, s.part, phase, cut,
+                                exempt)  # fmt: skip
+        else:
+            parts = tuple(p for p, f in zip(s.part, self.flange_fixed, strict=True) if f)
+            if exempt_cut is not None:
+                exempt = (exempt_cut, self.planner.body.jaw_zone, self.tool_mask[self.flange_fixed])
+            self.contacts.check(self.truth, self._flange_spheres(T_base_camera),
+                                s.radius[self.flange_fixed], parts, phase, cut, exempt)  # fmt: skip
+
+    # --------------------------------------------------------------- the job
+    def run(self) -> dict[str, Any]:
+        wall0 = time.perf_counter()
+        twin, cfg = self.twin, self.cfg
+        plan = plan_vine(twin, self.planner)
+        planning = plan.planning_s
+        cuts: list[dict[str, Any]] = []
+        for pid, why in plan.unreachable.items():
+            pose = twin.pose(pid)
+            cuts.append(_skipped(pose.cut_point, pid, None, why))
+        simulated = 0.0
+        x_prev: float | None = None
+        for x in plan.stops:
+            drive = 0.0 if x_prev is None else abs(x - x_prev) / cfg.job.platform.speed
+            platform = drive + cfg.job.platform.settle
+            x_prev = x
+            B = stop_pose(x, cfg.job.platform)
+            self.truth.at_stop(B)
+            self.planner.collider.at_stop(B)
+            if self.arm is not None:
+                self._place_vine(B)
+            q = STOW.copy()
+            for r in plan.order[x]:
+                out, q, pl = self._cut(r, B, q)
+                out["time_s"] += platform
+                out["phases"]["platform"] = platform
+                platform = 0.0
+                planning += pl
+                simulated += out["time_s"] - out["phases"].get("planning", 0.0)
+                cuts.append(out)
+            # back home for the platform's next drive
+            try:
+                tr = plan_transit(q, STOW, self.planner.valid, self.planner.arm.lower,
+                                  self.planner.arm.upper, self._limits(), cfg.job.transit,
+                                  cfg.seed)  # fmt: skip
+                planning += tr.planning_s
+                simulated += tr.duration
+                self._run_transit(tr, "stow", "")
+            except PlanningFailed as exc:
+                cuts.append(_skipped("", "", x, f"stowing the arm for the drive: {exc}"))
+        wall = time.perf_counter() - wall0
+        done = [c for c in cuts if c["status"] == "done"]
+        right = [c for c in done if c["blade_error_m"] <= cfg.job.cut.max_blade_error]
+        times = [c["time_s"] for c in done]
+        return {
+            "twin": str(twin.root),
+            "name": twin.name,
+            "config": cfg.to_dict(),
+            "plan": plan.to_dict(),
+            "cuts": cuts,
+            "collisions": len(self.contacts.events),
+            "contacts": self.contacts.events,
+            "planning_s": planning,
+            "reach_planning_s": plan.planning_s,
+            "summary": {
+                "poses": len(twin.poses),
+                "reachable": len(twin.poses) - len(plan.unreachable),
+                "done": len(done),
+                "done_right": len(right),
+                "skipped": len(cuts) - len(done),
+                "median_time_per_cut_s": float(np.median(times)) if times else math.nan,
+                "median_blade_error_mm": (
+                    1000 * float(np.median([c["blade_error_m"] for c in done])) if done
+                    else math.nan
+                ),
+                "simulated_s": simulated,
+                "wall_s": wall,
+                "realtime_factor": simulated / wall if wall > 0 else math.nan,
+            },
+        }
+
+    def _limits(self) -> tuple[Array, Array, Array]:
+        a = self.planner.arm
+        return a.vmax, a.amax, a.jmax
+
+    def _place_vine(self, T_vine_base: Array) -> None:
+        """The MuJoCo scene's vine body where the vine stands in the base at this stop."""
+        from vinetwin.conventions import quat_wxyz_from_matrix
+
+        arm = self.arm
+        assert arm is not None
+        T = invert(T_vine_base)
+        arm.T_base_vine = T
+        bid = arm.model.body("vine").id
+        arm.model.body_pos[bid] = T[:3, 3]
+        arm.model.body_quat[bid] = quat_wxyz_from_matrix(T[:3, :3])
+
+    def _backed_off(self, q: Array) -> list[Array]:
+        """Joints with the camera moved back along its optical axis, BACKOFF and twice that."""
+        arm = self.planner.arm
+        T = arm.camera(q)
+        out = []
+        for k in (1, 2):
+            Tb = T.copy()
+            Tb[:3, 3] -= BACKOFF * k * T[:3, 2]
+            qb = arm.solve(Tb, [q])
+            if qb is not None:
+                out.append(qb)
+        return out
+
+    def _via(self, q0: Array, q1: Array, B: Array) -> list[list[Array]]:
+        """Waypoint chains a transit tries before the planner: back off from the current pose
+        along its optical axis, and into the next along its own."""
+        a, b = self._backed_off(q0), self._backed_off(q1)
+        chains: list[list[Array]] = []
+        for k in range(max(len(a), len(b))):
+            chain = ([a[k]] if k < len(a) else []) + ([b[k]] if k < len(b) else [])
+            chains.append(chain)
+        return chains
+
+    def _run_transit(self, tr: Any, phase: str, cut: str) -> None:
+        ts, qs = tr.samples(TRANSIT_CHECK_DT)
+        arm = self.planner.arm
+        for qk in qs:
+            self.check_pose(qk, arm.camera(qk), phase, cut)
+        if self.arm is not None:
+            self.arm.set_q(qs[-1])
+
+    def _cut(self, r: CutReach, B: Array, q: Array) -> tuple[dict[str, Any], Array, float]:
+        """Transit, servo, cut, retreat for one pose. Returns (the cut's record, the joints
+        after it, planning compute)."""
+        twin, cfg = self.twin, self.cfg
+        pose = twin.pose(r.pose)
+        goal = np.asarray(pose.T_vine_camera, float)
+        cut = np.asarray(twin.cut_point(pose.cut_point).point, float)
+        arm = self.planner.arm
+        phases: dict[str, float] = {}
+        # where the robot's belief takes the camera: the pose, off by the registration error
+        E = make_pose(so3_exp(_direction(self.rng) * self.reg[1]),
+                      _direction(self.rng) * self.reg[0])  # fmt: skip
+        start = goal @ E
+        q_goal = arm.solve(invert(B) @ start, [r.q_pose], limit_margin=0.0)
+        if q_goal is None:
+            return _skipped(r.cut, r.pose, r.stop, "the believed pose is out of reach"), q, 0.0
+        via = self._via(q, q_goal, B)
+        try:
+            tr = plan_transit(q, q_goal, self.planner.valid, arm.lower, arm.upper,
+                              self._limits(), cfg.job.transit, cfg.seed, via)  # fmt: skip
+        except PlanningFailed as exc:
+            return _skipped(r.cut, r.pose, r.stop, f"transit: {exc}"), q, 0.0
+        phases["planning"] = tr.planning_s
+        phases["transit"] = tr.duration
+        import os
+        if os.environ.get("VT_DEBUG"):
+            print("transit", r.pose, len(tr.waypoints), tr.checks, round(tr.planning_s, 3), np.round(tr.durations, 2), np.round(np.abs(q_goal - q), 2))
+        self._run_transit(tr, "transit", r.cut)
+        out, q_after = self._servo_and_cut(r, pose, goal, start, cut, q_goal, B, phases)
+        return out, q_after, tr.planning_s
+
+    def _servo_and_cut(
+        self, r: CutReach, pose: Any, goal: Array, start: Array, cut: Array, q: Array,
+        B: Array, phases: dict[str, float],
+    ) -> tuple[dict[str, Any], Array]:  # fmt: skip
+        from vinetwin.render.reference import pose_seed
+        from vinetwin.sim.session import SimSpec, SimWorld
+        from vinetwin.sim.simulate import simulate
+
+        twin, cfg = self.twin, self.cfg
+        sim = SimConfig(variant=pose.icp_variant, duration=cfg.servo_duration,  # type: ignore[arg-type]
+                        settle=cfg.settle, seed=int(pose_seed(cfg.seed, pose.id)),
+                        profile=self.profile)  # fmt: skip
+        spec = SimSpec(goal, start, sim, pose.id, cut, reference_seed=int(pose_seed(cfg.seed, pose.id)),
+                       robot="" if self.arm is not None else None,
+                       arm_q=tuple(float(v) for v in q) if self.arm is not None else None)  # fmt: skip
+        world = SimWorld(self.backend, twin.perception, self.reference_backend, arm=self.arm,
+                         T_flange_camera=twin.T_flange_camera)  # fmt: skip
+        run = simulate(spec, world, keep=True)
+        session = run.session
+        try:
+            summ = run.summary()
+            phases["servo"] = float(run.t[-1]) if run.t else 0.0
+            base_from_vine = invert(B)
+            for T in run.T[:: max(1, len(run.T) // 60)]:  # camera poses in the vine frame
+                self.check_pose(None, base_from_vine @ T, "servo", r.cut)
+            if self.arm is not None:
+                self.check_pose(self.arm.q, self.arm.pose(), "servo", r.cut)
+            # the robot goes on when the servo says it has settled (it cannot see the truth)
+            settled = bool(run.t) and run.t[-1] + 1e-6 < cfg.servo_duration
+            if run.lost or not settled or session.servo.estimate is None:
+                why = run.lost or (
+                    f"the servo did not settle in {cfg.servo_duration:g} s "
+                    f"({1000 * summ['final_translation']:.1f} mm, "
+                    f"{summ['final_rotation']:.3f} rad from the pose)"
+                )
+                out = _skipped(r.cut, r.pose, r.stop, f"servo: {why}")
+                out["time_s"] = sum(phases.values())
+                out["phases"] = phases
+                return out, self._joints(q, session)
+            blade_error, phases_cut = self._cut_motion(session, cut, r.cut)
+            phases.update(phases_cut)
+        finally:
+            session.close()
+        return {
+            "cut": r.cut, "pose": r.pose, "stop": r.stop, "status": "done", "reason": "",
+            "blade_error_m": blade_error, "time_s": sum(phases.values()), "phases": phases,
+            "servo": {k: summ[k] for k in ("final_translation", "final_rotation", "frames",
+                                            "convergence_time")},
+        }, self._joints(q, session)  # fmt: skip
+
+    def _joints(self, q: Array, session: Any) -> Array:
+        """The arm's joints now: the MuJoCo Panda's, or the IK of the free camera's pose."""
+        if self.arm is not None:
+            return self.arm.q
+        T = session.robot.true_camera()
+        B = self.planner.collider.T_vine_base
+        qn = self.planner.arm.solve(invert(B) @ T, [q])
+        return q if qn is None else qn
+
+    def _cut_motion(self, session: Any, cut: Array, cut_id: str) -> tuple[float, dict[str, float]]:
+        """Straight in until the robot believes the blade is on the cut, close, straight out.
+        Returns the blade's true distance to the true cut point when it closed, and the
+        phases' times."""
+        robot, source = session.robot, session.source
+        arm = self.planner.arm
+        cc = self.cfg.job.cut
+        est = session.servo.estimate  # T_ref_cur
+        cut_cam = transform_points(invert(est), session.reference.cut[None])[0]
+        H = robot._field.hand_eye if robot._field is not None else np.eye(4)
+        blade_cam_bel = transform_points(invert(arm.T_flange_camera @ H), arm.blade_flange[None])[0]
+        d = cut_cam - blade_cam_bel
+        t0 = robot.t
+        self._straight(robot, d, cc.approach_speed, cut, cut_id, "cut")
+        t_in = robot.t - t0
+        T_base_vine = session.T_base_vine
+        cam_vine = invert(T_base_vine) @ robot.true_camera()
+        blade_true = transform_points(cam_vine @ invert(arm.T_flange_camera), arm.blade_flange[None])[0]
+        cut_true = transform_points(source.vine_at(robot.t), cut[None])[0]
+        error = float(np.linalg.norm(blade_true - cut_true))
+        robot.stop("closing the shears")
+        robot.advance(cc.close_time) if cc.close_time > 0 else None
+        t1 = robot.t
+        self._straight(robot, -d, cc.approach_speed, cut, cut_id, "retreat")
+        return error, {"cut": t_in, "close": cc.close_time, "retreat": robot.t - t1}
+
+    def _straight(self, robot: Any, d: Array, speed: float, cut: Array, cut_id: str,
+                  phase: str) -> None:  # fmt: skip
+        """Moves the camera (as the robot believes it) by d in its own frame at `speed`:
+        a proportional Cartesian controller on the reported pose, as a robot's straight move."""
+        C0 = robot.T_base_camera()
+        length = float(np.linalg.norm(d))
+        limit = 2.0 * length / speed + 2.0
+        t0 = robot.t
+        # the robot's frame: the base for the Panda, the vine's for the free camera
+        to_base = np.eye(4) if self.arm is not None else invert(self.truth.T_vine_base)
+        while robot.t - t0 < limit:
+            moved = (invert(C0) @ robot.T_base_camera())[:3, 3]
+            rest = d - moved
+            n = float(np.linalg.norm(rest))
+            if n < 2e-4:
+                break
+            v = rest / n * min(speed, n / CUT_DT)
+            robot.command(np.concatenate([v, np.zeros(3)]))
+            robot.advance(CUT_DT)
+            q = self.arm.q if self.arm is not None else None
+            self.check_pose(q, to_base @ robot.true_camera(), phase, cut_id, exempt_cut=cut)
+        robot.stop(f"{phase} done")
+
+
+def _direction(rng: np.random.Generator) -> Array:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def _skipped(cut: str, pose: str, stop: float | None, reason: str) -> dict[str, Any]:
+    return {"cut": cut, "pose": pose, "stop": stop, "status": "skipped", "reason": reason,
+            "blade_error_m": None, "time_s": 0.0, "phases": {}}  # fmt: skip
+
+
+def prune_twin(path: Any, cfg: PruneConfig | None = None) -> dict[str, Any]:
+    """One vine's whole job in simulation; its result as plain data (see the module)."""
+    cfg = cfg or PruneConfig()
+    twin = Twin.load(path)
+    job = _Job(twin, cfg)
+    try:
+        return job.run()
+    finally:
+        job.close()
