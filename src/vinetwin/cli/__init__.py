@@ -2,7 +2,8 @@
 tyro that nests the library's config dataclasses: every setting has one declaration and one
 default, in the library. `run()` imports lazily: `--help` stays fast. The jobs are library calls.
 The commands live by family: `cli.twin` (making, proposing, exporting, the web app), `cli.sim`
-(the servo and its simulations), `cli.capture` (captures and reconstruction)."""
+(the servo and its simulations), `cli.capture` (captures and reconstruction), `cli.prune` (the
+whole job)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import sys
 import tyro
 
 from vinetwin.cli.capture import CaptureSynthetic, ImportRecording, Reconstruct
+from vinetwin.cli.prune import Prune
 from vinetwin.cli.sim import Campaign, CheckReference, Fidelity, ServoCmd, ServoPlot, Validate
 from vinetwin.cli.twin import (
     Demo,
@@ -34,7 +36,7 @@ COMMANDS: dict[str, type] = {
     "export": Export, "preview": Preview, "demo": Demo, "campaign": Campaign, "validate": Validate,
     "web": Web, "capture-synthetic": CaptureSynthetic, "import-recording": ImportRecording,
     "servo": ServoCmd, "servo-plot": ServoPlot, "check-reference": CheckReference,
-    "fidelity": Fidelity, "reconstruct": Reconstruct,
+    "fidelity": Fidelity, "reconstruct": Reconstruct, "prune": Prune,
 }  # fmt: skip
 
 

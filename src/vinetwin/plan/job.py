@@ -66,8 +66,11 @@ class Planner:
         return self.collider.arm_clear(self.arm, q, self.cfg.reach.clearance)
 
 
-def plan_vine(twin: Twin, planner: Planner, pose_ids: list[str] | None = None) -> VinePlan:
-    """The plan for the twin's pruning poses (or `pose_ids`)."""
+def plan_vine(
+    twin: Twin, planner: Planner, pose_ids: list[str] | None = None, seed: int = 0
+) -> VinePlan:
+    """The plan for the twin's pruning poses (or `pose_ids`); `seed` seeds the inverse
+    kinematics' random starts."""
     t0 = time.perf_counter()
     cfg = planner.cfg
     poses = twin.poses if pose_ids is None else [twin.pose(p) for p in pose_ids]
@@ -76,7 +79,7 @@ def plan_vine(twin: Twin, planner: Planner, pose_ids: list[str] | None = None) -
             f"{twin.root}: the twin has no pruning poses; add some with `vinetwin propose`, "
             "`vinetwin poses` or the web app"
         )
-    rng = np.random.default_rng(cfg.seed)
+    rng = np.random.default_rng(seed)
     plan = VinePlan()
     reach: dict[str, dict[float, CutReach]] = {}
     reasons: dict[str, dict[str, int]] = {}

@@ -34,9 +34,9 @@ class PlatformConfig(JsonFields):
     """Robot base above the vine's foot (m): the deck's top."""
     spacing: float = 0.10
     """Candidate stops along the row every this far (m)."""
-    speed: float = 0.25
+    drive_speed: float = 0.25
     """Platform speed between stops (m/s); a tracked orchard platform drives 0.2-0.5 m/s."""
-    settle: float = 1.0
+    stop_settle: float = 1.0
     """Time (s) the platform needs to come to rest at a stop before the arm moves."""
     deck: tuple[float, float] = (0.8, 0.6)
     """The deck's length along the row and width across it (m), centred under the base."""
@@ -44,7 +44,7 @@ class PlatformConfig(JsonFields):
     def __post_init__(self) -> None:
         object.__setattr__(self, "deck", tuple(float(v) for v in self.deck))
         _ranges(self, (("offset", 0.2, 1.2), ("height", 0.0, 1.5), ("spacing", 0.02, 0.5),
-                       ("speed", 0.01, 1.0), ("settle", 0.0, 10.0)))  # fmt: skip
+                       ("drive_speed", 0.01, 1.0), ("stop_settle", 0.0, 10.0)))  # fmt: skip
         if len(self.deck) != 2 or not all(0.1 <= v <= 3.0 for v in self.deck):
             raise InputError(f"PlatformConfig.deck must be 2 sizes in [0.1, 3] m, got {self.deck}")
 
@@ -81,7 +81,7 @@ class ReachConfig(JsonFields):
 @dataclass(frozen=True, kw_only=True)
 class TransitConfig(JsonFields):
     """Collision-free joint-space transits: planned with OMPL, timed with ruckig within the
-    Panda's velocity, acceleration and jerk limits scaled by `speed`."""
+    Panda's velocity, acceleration and jerk limits scaled by `speed_scale`."""
 
     planner: Planner = "RRTConnect"
     timeout: float = 1.0
@@ -89,7 +89,7 @@ class TransitConfig(JsonFields):
     resolution: float = 0.01
     """Joint-space step (rad, the largest joint's motion) between collision checks along a
     motion."""
-    speed: float = 0.8
+    speed_scale: float = 0.8
     """Share of the joint velocity, acceleration and jerk limits a transit uses."""
 
     def __post_init__(self) -> None:
@@ -98,7 +98,7 @@ class TransitConfig(JsonFields):
                 f"unknown planner {self.planner!r}; choose one of: {', '.join(PLANNERS)}"
             )
         _ranges(self, (("timeout", 0.01, 60.0), ("resolution", 0.001, 0.1),
-                       ("speed", 0.01, 1.0)))  # fmt: skip
+                       ("speed_scale", 0.01, 1.0)))  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -127,8 +127,6 @@ class JobConfig(JsonFields):
     reach: ReachConfig = field(default_factory=ReachConfig)
     transit: TransitConfig = field(default_factory=TransitConfig)
     cut: CutConfig = field(default_factory=CutConfig)
-    seed: int = 0
-    """Seeds the IK's random starts and the planner."""
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()

@@ -11,6 +11,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -127,7 +128,7 @@ def plan_transit(
             break
     if path is None:
         path = _ompl_path(q0, q1, counted, lower, upper, cfg, seed)
-    scale = cfg.speed
+    scale = cfg.speed_scale
     vmax, amax, jmax = limits
     transit = time_path(path, vmax * scale, amax * scale, jmax * scale)
     # the timed trajectory, checked again at the resolution
@@ -149,11 +150,60 @@ def _ompl_path(
     cfg: TransitConfig,
     seed: int,
 ) -> list[Array]:
+    """OMPL's path, planned in a forked child process: OMPL's random numbers can be seeded only
+    before their first use in a process, so each plan gets a fresh process whose first use is
+    seeded with `seed`, and a vine's transits are the same whichever worker (a local pool's or
+    Ray's) plans them and whatever it planned before. The child shares the parent's collision
+    model by the fork (no copy); it sends the waypoints back through a pipe."""
+    import multiprocessing as mp
+    import pickle
+
+    _lazy.module("ompl", "transit planning (pip install ompl)")  # imported once, here
+    ctx = mp.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+
+    def child() -> None:
+        try:
+            out: Any = _ompl_plan(q0, q1, valid, lower, upper, cfg, seed)
+        except PlanningFailed as exc:
+            out = str(exc)
+        except BaseException as exc:  # noqa: BLE001 - reported to the parent
+            out = f"the planner failed: {type(exc).__name__}: {exc}"
+        send.send_bytes(pickle.dumps(out))
+        send.close()
+
+    proc = ctx.Process(target=child, daemon=True)
+    proc.start()
+    send.close()
+    try:
+        if not recv.poll(cfg.timeout + 30.0):
+            raise PlanningFailed(f"the planner did not answer in {cfg.timeout + 30.0:g} s")
+        out = pickle.loads(recv.recv_bytes())
+    except EOFError:
+        raise PlanningFailed("the planner's process died") from None
+    finally:
+        recv.close()
+        proc.join(timeout=5.0)
+        if proc.is_alive():
+            proc.kill()
+    if isinstance(out, str):
+        raise PlanningFailed(out)
+    return [np.asarray(w, float) for w in out]
+
+
+def _ompl_plan(
+    q0: Array,
+    q1: Array,
+    valid: Callable[[Array], bool],
+    lower: Array,
+    upper: Array,
+    cfg: TransitConfig,
+    seed: int,
+) -> list[Array]:
     ompl = _lazy.module("ompl", "transit planning (pip install ompl)")
     ob, og, ou = ompl.base, ompl.geometric, ompl.util
     ou.setLogLevel(ou.LogLevel.LOG_WARN)
-    if hasattr(ou, "RNG"):
-        ou.RNG.setSeed(int(seed) + 1)
+    ou.RNG.setSeed(int(seed) + 1)
     space = ob.RealVectorStateSpace(7)
     bounds = ob.RealVectorBounds(7)
     for i in range(7):
@@ -176,4 +226,4 @@ def _ompl_path(
                              f"({solved})")  # fmt: skip
     ss.simplifySolution(min(0.2, cfg.timeout))
     p = ss.getSolutionPath()
-    return [np.array([p.getState(k)[i] for i in range(7)]) for k in range(p.getStateCount())]
+    return [[float(p.getState(k)[i]) for i in range(7)] for k in range(p.getStateCount())]

@@ -62,18 +62,25 @@ class PruneConfig(JsonFields):
     profile: str = "ideal"
     """ideal, field, or a JSON file of `FieldProfile` fields."""
     seed: int = 0
+    """Seeds the registration errors, the camera's noise, the field profile's draws, the inverse
+    kinematics' random starts and the planner."""
     servo_duration: float = 10.0
     """Longest servo per cut (s, simulated); past it the cut is skipped."""
-    settle: float = 0.3
+    servo_settle: float = 0.3
     """The servo must report being at its goal this long (s) before the tool moves in."""
+    camera_rate: float = 30.0
+    """The D405's frame rate; each frame's twist is held one frame period (the servo's compute
+    is well under it), so a run's simulated times do not depend on this machine's load."""
     job: JobConfig = field(default_factory=JobConfig)
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()
         if self.sim not in SIM_KINDS:
             raise InputError(f"unknown sim {self.sim!r}; choose one of: {', '.join(SIM_KINDS)}")
-        if not (0.5 <= self.servo_duration <= 120.0) or not (0.0 <= self.settle <= 5.0):
-            raise InputError("servo_duration must lie in [0.5, 120] s and settle in [0, 5] s")
+        if not (0.5 <= self.servo_duration <= 120.0) or not (0.0 <= self.servo_settle <= 5.0):
+            raise InputError(
+                "servo_duration must lie in [0.5, 120] s and servo_settle in [0, 5] s"
+            )
 
 
 @dataclass
@@ -175,17 +182,18 @@ class _Job:
     def run(self) -> dict[str, Any]:
         wall0 = time.perf_counter()
         twin, cfg = self.twin, self.cfg
-        plan = plan_vine(twin, self.planner)
+        plan = plan_vine(twin, self.planner, seed=cfg.seed)
         planning = plan.planning_s
         cuts: list[dict[str, Any]] = []
         for pid, why in plan.unreachable.items():
             pose = twin.pose(pid)
-            cuts.append(_skipped(pose.cut_point, pid, None, why))
+            cuts.append(_skipped(pose.cut_point, pid, None, why,
+                                 twin.cut_point(pose.cut_point).point))  # fmt: skip
         simulated = 0.0
         x_prev: float | None = None
         for x in plan.stops:
-            drive = 0.0 if x_prev is None else abs(x - x_prev) / cfg.job.platform.speed
-            platform = drive + cfg.job.platform.settle
+            drive = 0.0 if x_prev is None else abs(x - x_prev) / cfg.job.platform.drive_speed
+            platform = drive + cfg.job.platform.stop_settle
             x_prev = x
             B = stop_pose(x, cfg.job.platform)
             self.truth.at_stop(B)
@@ -199,7 +207,7 @@ class _Job:
                 out["phases"]["platform"] = platform
                 platform = 0.0
                 planning += pl
-                simulated += out["time_s"] - out["phases"].get("planning", 0.0)
+                simulated += out["time_s"]
                 cuts.append(out)
             # back home for the platform's next drive
             try:
@@ -304,17 +312,17 @@ class _Job:
         start = goal @ E
         q_goal = arm.solve(invert(B) @ start, [r.q_pose], limit_margin=0.0)
         if q_goal is None:
-            return _skipped(r.cut, r.pose, r.stop, "the believed pose is out of reach"), q, 0.0
+            return _skipped(r.cut, r.pose, r.stop, "the believed pose is out of reach", cut), q, 0.0
         via = self._via(q, q_goal, B)
         try:
             tr = plan_transit(q, q_goal, self.planner.valid, arm.lower, arm.upper,
                               self._limits(), cfg.job.transit, cfg.seed, via)  # fmt: skip
         except PlanningFailed as exc:
-            return _skipped(r.cut, r.pose, r.stop, f"transit: {exc}"), q, 0.0
+            return _skipped(r.cut, r.pose, r.stop, f"transit: {exc}", cut), q, 0.0
         phases["planning"] = tr.planning_s
         phases["transit"] = tr.duration
         import os
-        if os.environ.get("VT_DEBUG"):
+        if os.environ.get("VT_DEBUG"):  # noqa
             print("transit", r.pose, len(tr.waypoints), tr.checks, round(tr.planning_s, 3), np.round(tr.durations, 2), np.round(np.abs(q_goal - q), 2))
         self._run_transit(tr, "transit", r.cut)
         out, q_after = self._servo_and_cut(r, pose, goal, start, cut, q_goal, B, phases)
@@ -330,8 +338,9 @@ class _Job:
 
         twin, cfg = self.twin, self.cfg
         sim = SimConfig(variant=pose.icp_variant, duration=cfg.servo_duration,  # type: ignore[arg-type]
-                        settle=cfg.settle, seed=int(pose_seed(cfg.seed, pose.id)),
-                        profile=self.profile)  # fmt: skip
+                        settle=cfg.servo_settle, seed=int(pose_seed(cfg.seed, pose.id)),
+                        profile=self.profile, camera_rate=cfg.camera_rate,
+                        fixed_period=1.0 / cfg.camera_rate)  # fmt: skip
         spec = SimSpec(goal, start, sim, pose.id, cut, reference_seed=int(pose_seed(cfg.seed, pose.id)),
                        robot="" if self.arm is not None else None,
                        arm_q=tuple(float(v) for v in q) if self.arm is not None else None)  # fmt: skip
@@ -355,8 +364,8 @@ class _Job:
                     f"({1000 * summ['final_translation']:.1f} mm, "
                     f"{summ['final_rotation']:.3f} rad from the pose)"
                 )
-                out = _skipped(r.cut, r.pose, r.stop, f"servo: {why}")
-                out["time_s"] = sum(phases.values())
+                out = _skipped(r.cut, r.pose, r.stop, f"servo: {why}", cut)
+                out["time_s"] = _simulated(phases)
                 out["phases"] = phases
                 return out, self._joints(q, session)
             blade_error, phases_cut = self._cut_motion(session, cut, r.cut)
@@ -364,8 +373,9 @@ class _Job:
         finally:
             session.close()
         return {
-            "cut": r.cut, "pose": r.pose, "stop": r.stop, "status": "done", "reason": "",
-            "blade_error_m": blade_error, "time_s": sum(phases.values()), "phases": phases,
+            "cut": r.cut, "pose": r.pose, "stop": r.stop, "point": cut.tolist(),
+            "status": "done", "reason": "",
+            "blade_error_m": blade_error, "time_s": _simulated(phases), "phases": phases,
             "servo": {k: summ[k] for k in ("final_translation", "final_rotation", "frames",
                                             "convergence_time")},
         }, self._joints(q, session)  # fmt: skip
@@ -429,14 +439,24 @@ class _Job:
         robot.stop(f"{phase} done")
 
 
+def _simulated(phases: dict[str, float]) -> float:
+    """A cut's time: its simulated phases (planning is compute, done while the arm works, and
+    reported apart as `planning_s`)."""
+    return float(sum(v for k, v in phases.items() if k != "planning"))
+
+
 def _direction(rng: np.random.Generator) -> Array:
     v = rng.normal(size=3)
     return v / np.linalg.norm(v)
 
 
-def _skipped(cut: str, pose: str, stop: float | None, reason: str) -> dict[str, Any]:
-    return {"cut": cut, "pose": pose, "stop": stop, "status": "skipped", "reason": reason,
-            "blade_error_m": None, "time_s": 0.0, "phases": {}}  # fmt: skip
+def _skipped(
+    cut: str, pose: str, stop: float | None, reason: str, point: Any = None
+) -> dict[str, Any]:
+    return {"cut": cut, "pose": pose, "stop": stop,
+            "point": None if point is None else np.asarray(point, float).tolist(),
+            "status": "skipped", "reason": reason, "blade_error_m": None, "time_s": 0.0,
+            "phases": {}}  # fmt: skip
 
 
 def prune_twin(path: Any, cfg: PruneConfig | None = None) -> dict[str, Any]:
