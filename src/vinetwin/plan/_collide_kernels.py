@@ -135,17 +135,17 @@ def _any_vertex_within(
 
 @nb.njit(cache=True)
 def arm_valid(
-    q: Array, T_vine_base: Array, frame: Array, local: Array, radii: Array, clearance: float,
+    q: Array, T_vine_base: Array, frame: Array, local: Array, radii: Array, clearance: Array,
     bound: float, V: Array, origin: Array, cell: float, shape: Array, starts: Array,
     order: Array, blocks: Array, factor: int, deck_lo: Array, deck_hi: Array,
 ) -> bool:  # pragma: no cover - compiled  # fmt: skip
-    """Whether every sphere at joints q keeps `clearance` from the vine (no vertex within
+    """Whether every sphere k at joints q keeps clearance[k] from the vine (no vertex within
     radius + clearance + bound), the deck and the ground."""
     P = np.empty((len(radii), 3))
     arm_points(q, T_vine_base, frame, local, P)
     for k in range(len(radii)):
         p = P[k]
-        need = radii[k] + clearance
+        need = radii[k] + clearance[k]
         if p[2] < need:
             return False
         s = 0.0
@@ -155,7 +155,7 @@ def arm_valid(
         if s < need * need:
             return False
     for k in range(len(radii)):  # the vine last: the dearest
-        if _any_vertex_within(P[k], radii[k] + clearance + bound, V, origin, cell, shape,
+        if _any_vertex_within(P[k], radii[k] + clearance[k] + bound, V, origin, cell, shape,
                               starts, order, blocks, factor):  # fmt: skip
             return False
     return True

@@ -62,8 +62,9 @@ class Planner:
         return cls(arm, Collider(mesh[0], mesh[1], cfg.platform), cfg, body)
 
     def valid(self, q: Array) -> bool:
-        """Joints q clear of every obstacle by `reach.clearance` at the current stop."""
-        return self.collider.arm_clear(self.arm, q, self.cfg.reach.clearance)
+        """Joints q clear of every obstacle at the current stop: the links by
+        `reach.clearance`, the hand (mount, camera, tool) by the body's margin."""
+        return self.collider.arm_clear(self.arm, q, self.cfg.reach.clearance, self.body.margin)
 
 
 def plan_vine(

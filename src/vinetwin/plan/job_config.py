@@ -58,9 +58,11 @@ class ReachConfig(JsonFields):
     middle of its workspace, 0 at a singularity)."""
     limit_margin: float = 0.05
     """Every joint stays this far (rad) inside its limits at a pose and along the approach."""
-    clearance: float = 0.005
-    """Every collision sphere of the arm, camera and tool keeps this far (m) from the vine,
-    deck and ground along planned transits (the pose search's margin, `BodyConfig.margin`)."""
+    clearance: float = 0.02
+    """The arm's links keep this far (m) from the vine, deck and ground at the poses and along
+    planned transits: the twin, the platform's localisation and the arm's calibration are each
+    a few millimetres off in the field (FIELD.md). The hand (mount, camera, tool), which must
+    come close to the cut, keeps the pose search's margin (`BodyConfig.margin`)."""
     seeds: int = 6
     """Random IK seeds tried per pose after the warm ones."""
     approach_steps: int = 6

@@ -89,11 +89,13 @@ class Collider:
         out[:, 0] -= self.bound
         return out
 
-    def arm_clear(self, arm: ArmModel, q: Array, clearance: float) -> bool:
-        """Every sphere of the arm at joints q at least `clearance` from every obstacle
-        (conservative: no vine vertex within the sphere's radius, the clearance and what the
-        surface between vertices can come closer)."""
+    def arm_clear(self, arm: ArmModel, q: Array, links: float, hand: float) -> bool:
+        """Every sphere of the arm at joints q clear of every obstacle: the links' by `links`,
+        the hand's (mount, camera, tool) by `hand` (conservative: no vine vertex within the
+        sphere's radius, its clearance and what the surface between vertices can come
+        closer)."""
         s = arm.spheres
+        clearance = np.where(s.frame == 8, hand, links)
         return bool(arm_valid(np.asarray(q, float), self.T_vine_base, s.frame, s.centre,
                               s.radius, clearance, self.bound, self.V, self.origin, GRID_CELL,
                               self.shape, self.starts, self.order, self.blocks, BLOCK,
@@ -227,6 +229,8 @@ def _approach(
     s = arm.spheres
     tool = np.array([p == "tool" for p in s.part])
     worst = math.inf
+    if not collider.arm_clear(arm, q, rc.clearance, margin):
+        return f"the arm's links come within {1000 * rc.clearance:.0f} mm of an obstacle at the pose"
     for k, qk in enumerate(qs):
         exempt = (np.asarray(cut, float), jaw_zone, tool) if k > 0 else None
         gap, i, what = collider.clearance(arm.sphere_centres(qk), s.radius, exempt)

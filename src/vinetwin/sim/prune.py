@@ -33,7 +33,7 @@ import numpy as np
 from vinetwin._config import JsonFields
 from vinetwin.arm import STOW
 from vinetwin.errors import InputError
-from vinetwin.frames import Array, invert, make_pose, so3_exp, transform_points
+from vinetwin.frames import Array, invert, make_pose, so3_exp, so3_log, transform_points
 from vinetwin.plan.job import Planner, plan_vine
 from vinetwin.plan.job_config import JobConfig
 from vinetwin.plan.reach import Collider, CutReach, stop_pose
@@ -47,8 +47,15 @@ SIM_KINDS: tuple[SimKind, ...] = ("kinematic", "mujoco")
 TRANSIT_CHECK_DT = 0.02
 #: How far (m) a transit's waypoints back the camera off along its optical axis.
 BACKOFF = 0.1
+#: A straight move ends within this distance (m) of its end, as the robot reads it (above the
+#: encoders' noise).
+STRAIGHT_TOLERANCE = 5e-4
+#: The straight move's proportional gain (1/s): slow enough for an arm that lags its command.
+STRAIGHT_GAIN = 5.0
 #: Control period (s) of the straight cut and retreat.
 CUT_DT = 1.0 / 30.0
+#: The arm's rest (s) between the end of the straight move and the blade's closing.
+CLOSE_SETTLE = 0.1
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -71,10 +78,16 @@ class PruneConfig(JsonFields):
     camera_rate: float = 30.0
     """The D405's frame rate; each frame's twist is held one frame period (the servo's compute
     is well under it), so a run's simulated times do not depend on this machine's load."""
+    obstacles: Literal["twin", "rebuilt"] = "twin"
+    """What the planner keeps the arm clear of: the twin's mesh (the whole vine, as a scan or
+    the generator gives it), or, under the field profile's twin source, the reconstructed twin
+    its references come from (a capture that may have missed parts of the vine)."""
     job: JobConfig = field(default_factory=JobConfig)
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()
+        if self.obstacles not in ("twin", "rebuilt"):
+            raise InputError(f"obstacles must be twin or rebuilt, got {self.obstacles!r}")
         if self.sim not in SIM_KINDS:
             raise InputError(f"unknown sim {self.sim!r}; choose one of: {', '.join(SIM_KINDS)}")
         if not (0.5 <= self.servo_duration <= 120.0) or not (0.0 <= self.servo_settle <= 5.0):
@@ -123,7 +136,8 @@ class _Job:
             rm = load_mesh(path)
             robot_mesh = (np.asarray(rm.vertices), np.asarray(rm.faces))
             self.reference_backend = raycaster(rm.vertices, rm.faces, twin.camera)
-        self.planner = Planner.for_twin(twin, cfg.job, mesh=robot_mesh)
+        plan_mesh = robot_mesh if cfg.obstacles == "rebuilt" else (self.V, self.F)
+        self.planner = Planner.for_twin(twin, cfg.job, mesh=plan_mesh)
         self.truth = Collider(self.V, self.F, cfg.job.platform)
         self.backend = scene_backend(self.V, self.F, twin.camera)
         self.arm = None
@@ -210,6 +224,7 @@ class _Job:
                 simulated += out["time_s"]
                 cuts.append(out)
             # back home for the platform's next drive
+            q = np.clip(q, self.planner.arm.lower, self.planner.arm.upper)
             try:
                 tr = plan_transit(q, STOW, self.planner.valid, self.planner.arm.lower,
                                   self.planner.arm.upper, self._limits(), cfg.job.transit,
@@ -310,9 +325,10 @@ class _Job:
         E = make_pose(so3_exp(_direction(self.rng) * self.reg[1]),
                       _direction(self.rng) * self.reg[0])  # fmt: skip
         start = goal @ E
-        q_goal = arm.solve(invert(B) @ start, [r.q_pose], limit_margin=0.0)
+        q_goal = arm.solve(invert(B) @ start, [r.q_pose], limit_margin=cfg.job.reach.limit_margin)
         if q_goal is None:
             return _skipped(r.cut, r.pose, r.stop, "the believed pose is out of reach", cut), q, 0.0
+        q = np.clip(q, arm.lower, arm.upper)  # a lagging arm may sit a hair past a limit
         via = self._via(q, q_goal, B)
         try:
             tr = plan_transit(q, q_goal, self.planner.valid, arm.lower, arm.upper,
@@ -398,22 +414,27 @@ class _Job:
         cc = self.cfg.job.cut
         est = session.servo.estimate  # T_ref_cur
         cut_cam = transform_points(invert(est), session.reference.cut[None])[0]
-        H = robot._field.hand_eye if robot._field is not None else np.eye(4)
-        blade_cam_bel = transform_points(invert(arm.T_flange_camera @ H), arm.blade_flange[None])[0]
-        d = cut_cam - blade_cam_bel
+        # the blade is calibrated in the camera's frame (the D405 sees its tip 7 cm ahead), so
+        # the hand-eye error does not enter its offset; it enters the straight move, which the
+        # arm executes through its flange
+        blade_cam = transform_points(invert(arm.T_flange_camera), arm.blade_flange[None])[0]
+        d = cut_cam - blade_cam
         t0 = robot.t
         self._straight(robot, d, cc.approach_speed, cut, cut_id, "cut")
         t_in = robot.t - t0
+        robot.stop("closing the shears")
+        robot.advance(CLOSE_SETTLE)  # the arm comes to rest as the blades start to close
         T_base_vine = session.T_base_vine
         cam_vine = invert(T_base_vine) @ robot.true_camera()
         blade_true = transform_points(cam_vine @ invert(arm.T_flange_camera), arm.blade_flange[None])[0]
         cut_true = transform_points(source.vine_at(robot.t), cut[None])[0]
         error = float(np.linalg.norm(blade_true - cut_true))
-        robot.stop("closing the shears")
-        robot.advance(cc.close_time) if cc.close_time > 0 else None
+        if cc.close_time > CLOSE_SETTLE:
+            robot.advance(cc.close_time - CLOSE_SETTLE)
         t1 = robot.t
         self._straight(robot, -d, cc.approach_speed, cut, cut_id, "retreat")
-        return error, {"cut": t_in, "close": cc.close_time, "retreat": robot.t - t1}
+        return error, {"cut": t_in, "close": max(cc.close_time, CLOSE_SETTLE),
+                       "retreat": robot.t - t1}  # fmt: skip
 
     def _straight(self, robot: Any, d: Array, speed: float, cut: Array, cut_id: str,
                   phase: str) -> None:  # fmt: skip
@@ -426,13 +447,14 @@ class _Job:
         # the robot's frame: the base for the Panda, the vine's for the free camera
         to_base = np.eye(4) if self.arm is not None else invert(self.truth.T_vine_base)
         while robot.t - t0 < limit:
-            moved = (invert(C0) @ robot.T_base_camera())[:3, 3]
-            rest = d - moved
+            M = invert(C0) @ robot.T_base_camera()  # the camera now, in its start frame
+            rest = M[:3, :3].T @ (d - M[:3, 3])  # what is left, in the camera frame now
             n = float(np.linalg.norm(rest))
-            if n < 2e-4:
+            if n < STRAIGHT_TOLERANCE:
                 break
-            v = rest / n * min(speed, n / CUT_DT)
-            robot.command(np.concatenate([v, np.zeros(3)]))
+            v = rest / n * min(speed, STRAIGHT_GAIN * n)
+            w = STRAIGHT_GAIN * so3_log(M[:3, :3].T)  # hold the start's orientation
+            robot.command(np.concatenate([v, w]))
             robot.advance(CUT_DT)
             q = self.arm.q if self.arm is not None else None
             self.check_pose(q, to_base @ robot.true_camera(), phase, cut_id, exempt_cut=cut)
