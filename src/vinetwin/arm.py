@@ -10,7 +10,7 @@ and a hardware session read one definition.
 - Collision model: spheres that cover panda.xml's collision capsules link by link, the tool's mount,
   the D405's housing (42 x 42 x 23 mm) and the tool's capsule from the camera to the blade. A
   sphere of radius r every r/2 along a capsule of radius r covers it to within 3.2% of r. The
-  pruning end effector replaces Franka's hand: a mount on the flange (7 cm across, 4 cm long),
+  pruning end effector replaces Franka's hand: a mount on the flange (5 cm across, 4 cm long),
   the D405 and the shears.
 - Inverse kinematics (`ArmModel.solve`): damped least squares on the camera frame from several
   seeds, compiled; a solution must lie within the joint limits and keep the arm's
@@ -67,7 +67,7 @@ _CAPSULES = (
 )
 #: The pruning end effector replaces Franka's hand: a mount on the flange (radius, length along
 #: its z, m) that carries the shears and the D405.
-_MOUNT = (0.035, 0.04)
+_MOUNT = (0.025, 0.04)
 
 
 @nb.njit(cache=True)

@@ -159,3 +159,98 @@ def arm_valid(
                               starts, order, blocks, factor):  # fmt: skip
             return False
     return True
+
+
+def vertex_triangles(V: Array, F: Array) -> tuple[Array, Array, Array]:
+    """CSR of the triangles around each vertex (vertex v's are tris[starts[v]:starts[v + 1]])
+    and each vertex's longest incident edge."""
+    flat = F.ravel()
+    order = np.argsort(flat, kind="stable")
+    starts = np.searchsorted(flat[order], np.arange(len(V) + 1)).astype(np.int64)
+    edges = np.linalg.norm(V[F[:, [1, 2, 0]]] - V[F], axis=2).max(axis=1)
+    vedge = np.zeros(len(V))
+    np.maximum.at(vedge, F.ravel(), np.repeat(edges, 3))
+    return starts, (order // 3).astype(np.int64), vedge
+
+
+@nb.njit(cache=True)
+def _closest_on_triangle(p: Array, a: Array, b: Array, c: Array) -> Array:  # pragma: no cover
+    """The point of triangle abc nearest p (Ericson, Real-Time Collision Detection, 5.1.5)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = ab @ ap, ac @ ap
+    if d1 <= 0.0 and d2 <= 0.0:
+        return a
+    bp = p - b
+    d3, d4 = ab @ bp, ac @ bp
+    if d3 >= 0.0 and d4 <= d3:
+        return b
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        return a + ab * (d1 / (d1 - d3))
+    cp = p - c
+    d5, d6 = ab @ cp, ac @ cp
+    if d6 >= 0.0 and d5 <= d6:
+        return c
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        return a + ac * (d2 / (d2 - d6))
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+    den = 1.0 / (va + vb + vc)
+    return a + ab * (vb * den) + ac * (vc * den)
+
+
+@nb.njit(cache=True)
+def closest_points(
+    P: Array, reach: float, edge: float, V: Array, F: Array, origin: Array, cell: float,
+    shape: Array, starts: Array, order: Array, vt_starts: Array, vt_tris: Array, vedge: Array,
+    dist: Array, closest: Array,
+) -> None:  # pragma: no cover - compiled  # fmt: skip
+    """For each point: its exact distance to the mesh and the nearest surface point, when that
+    is within `reach` (else dist = inf, closest NaN). The surface is no farther than the nearest
+    vertex (dv), and the nearest triangle has a corner within its distance + its longest edge
+    (`edge`): the triangles around the vertices within dv + edge are tried."""
+    for n in range(len(P)):
+        p = P[n]
+        dv = nearest_vertex(p, reach + edge, V, origin, cell, shape, starts, order)
+        R = dv + edge
+        best = dv * dv + 1e-15  # the nearest vertex is a point of the surface: a first bound
+        cx, cy, cz = np.nan, np.nan, np.nan
+        lo = np.empty(3, np.int64)
+        hi = np.empty(3, np.int64)
+        empty = False
+        for a in range(3):
+            lo[a] = max(0, int(math.floor((p[a] - R - origin[a]) / cell)))
+            hi[a] = min(shape[a] - 1, int(math.floor((p[a] + R - origin[a]) / cell)))
+            if lo[a] > hi[a]:
+                empty = True
+        if not empty:
+            for i in range(lo[0], hi[0] + 1):
+                for j in range(lo[1], hi[1] + 1):
+                    base = (i * shape[1] + j) * shape[2]
+                    for k in range(lo[2], hi[2] + 1):
+                        c = base + k
+                        for m in range(starts[c], starts[c + 1]):
+                            v = order[m]
+                            d = V[v] - p
+                            dd = d @ d
+                            if dd > R * R:
+                                continue
+                            # its triangles lie within its longest edge of it
+                            lim = math.sqrt(best) + vedge[v] if best < np.inf else R
+                            if dd > lim * lim:
+                                continue
+                            for t in vt_tris[vt_starts[v] : vt_starts[v + 1]]:
+                                q = _closest_on_triangle(p, V[F[t, 0]], V[F[t, 1]], V[F[t, 2]])
+                                e = q - p
+                                d2 = e @ e
+                                if d2 <= best:  # ties too: the nearest vertex may be it
+                                    best = d2
+                                    cx, cy, cz = q[0], q[1], q[2]
+        if best <= reach * reach:
+            dist[n] = math.sqrt(best)
+            closest[n, 0], closest[n, 1], closest[n, 2] = cx, cy, cz
+        else:
+            dist[n] = np.inf
+            closest[n, 0] = closest[n, 1] = closest[n, 2] = np.nan

@@ -7,7 +7,7 @@ wherever the arm is after the previous cut."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -16,7 +16,7 @@ from vinetwin.arm import STOW, ArmModel
 from vinetwin.errors import InputError
 from vinetwin.frames import Array
 from vinetwin.plan.config import BodyConfig
-from vinetwin.plan.job_config import JobConfig
+from vinetwin.plan.job_config import JobConfig, placed
 from vinetwin.plan.reach import (
     Collider,
     CutReach,
@@ -29,6 +29,8 @@ from vinetwin.plan.reach import (
 )
 from vinetwin.twin.model import Twin
 
+#: A pose whose optical axis points this much towards -Y looks at the row from the far side.
+FAR_SIDE = 0.1
 #: Stops tried per pose, nearest first, stop once this many reach it (the set cover rarely
 #: needs more choice than that, and the stops beyond cost most: their IK fails).
 MAX_STOPS_PER_POSE = 5
@@ -71,7 +73,8 @@ def plan_vine(
     twin: Twin, planner: Planner, pose_ids: list[str] | None = None, seed: int = 0
 ) -> VinePlan:
     """The plan for the twin's pruning poses (or `pose_ids`); `seed` seeds the inverse
-    kinematics' random starts."""
+    kinematics' random starts. The planner's platform is placed first (`job_config.placed`):
+    `planner.cfg` keeps it, for the job that follows."""
     t0 = time.perf_counter()
     cfg = planner.cfg
     poses = twin.poses if pose_ids is None else [twin.pose(p) for p in pose_ids]
@@ -82,6 +85,17 @@ def plan_vine(
         )
     rng = np.random.default_rng(seed)
     plan = VinePlan()
+    near = [p for p in poses if np.asarray(p.T_vine_camera, float)[1, 2] > -FAR_SIDE]
+    for p in poses:
+        if p not in near:
+            plan.unreachable[p.id] = (
+                "the pose looks at the row from its other side (+Y): prune it from there"
+            )
+    poses = near
+    cfg = replace(cfg, platform=placed(
+        cfg.platform, [tuple(np.asarray(p.T_vine_camera, float)[:3, 3]) for p in poses]))  # fmt: skip
+    planner.cfg = cfg
+    plan.platform = cfg.platform.to_dict()
     reach: dict[str, dict[float, CutReach]] = {}
     reasons: dict[str, dict[str, int]] = {}
     for pose in poses:

@@ -23,15 +23,24 @@ def _ranges(obj: object, table: tuple[tuple[str, float, float], ...]) -> None:
             raise InputError(f"{type(obj).__name__}.{name} must lie in [{lo}, {hi}], got {v}")
 
 
+#: The automatic platform placement: the base this far (m) behind the camera nearest it (-Y)...
+AUTO_REACH = 0.4
+#: ... and this far (m) below the poses' median camera height (the Panda's shoulder is 0.333 m
+#: above its base).
+AUTO_DROP = 0.3
+
+
 @dataclass(frozen=True, kw_only=True)
 class PlatformConfig(JsonFields):
     """The platform that carries the Panda along the row (the vine frame's +X), on the robot's
     side (-Y). Its deck is a box under the base, an obstacle for the arm."""
 
-    offset: float = 0.55
-    """From the row (the vine frame's X axis) to the robot base (m), on the -Y side."""
-    height: float = 0.45
-    """Robot base above the vine's foot (m): the deck's top."""
+    offset: float = 0.0
+    """From the row (the vine frame's X axis) to the robot base (m), on the -Y side; 0: from
+    the poses (`AUTO_REACH` behind the camera nearest the robot)."""
+    height: float = 0.0
+    """Robot base above the vine's foot (m): the deck's top; 0: from the poses (`AUTO_DROP`
+    below their median camera height, so the shoulder faces the cuts)."""
     spacing: float = 0.10
     """Candidate stops along the row every this far (m)."""
     drive_speed: float = 0.25
@@ -43,8 +52,14 @@ class PlatformConfig(JsonFields):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "deck", tuple(float(v) for v in self.deck))
-        _ranges(self, (("offset", 0.2, 1.2), ("height", 0.0, 1.5), ("spacing", 0.02, 0.5),
+        for name, lo, hi in (("offset", 0.2, 2.0), ("height", 0.05, 1.8)):
+            v = getattr(self, name)
+            if v != 0.0 and not lo <= v <= hi:
+                raise InputError(f"PlatformConfig.{name} must be 0 (from the poses) or lie in "
+                                 f"[{lo}, {hi}] m, got {v}")  # fmt: skip
+        _ranges(self, (("spacing", 0.02, 0.5),
                        ("drive_speed", 0.01, 1.0), ("stop_settle", 0.0, 10.0)))  # fmt: skip
+        check_finite(self, ("offset", "height"))
         if len(self.deck) != 2 or not all(0.1 <= v <= 3.0 for v in self.deck):
             raise InputError(f"PlatformConfig.deck must be 2 sizes in [0.1, 3] m, got {self.deck}")
 
@@ -132,3 +147,17 @@ class JobConfig(JsonFields):
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()
+
+
+def placed(platform: PlatformConfig, cameras: list[tuple[float, float, float]]) -> PlatformConfig:
+    """The platform with its automatic offset and height (those given as 0) set from the pruning
+    poses' camera positions (vine frame), clamped to their ranges."""
+    from dataclasses import replace
+
+    if not cameras:
+        return platform
+    ys = [c[1] for c in cameras]
+    zs = sorted(c[2] for c in cameras)
+    offset = platform.offset or min(max(AUTO_REACH - min(ys), 0.2), 2.0)
+    height = platform.height or min(max(zs[len(zs) // 2] - AUTO_DROP, 0.05), 1.8)
+    return replace(platform, offset=round(offset, 3), height=round(height, 3))

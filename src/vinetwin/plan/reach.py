@@ -18,13 +18,14 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin import _lazy
 from vinetwin.arm import HOME, STOW, ArmModel, base_pose
 from vinetwin.plan._collide_kernels import (
     arm_valid,
     build_blocks,
     build_hash,
+    closest_points,
     point_gaps,
+    vertex_triangles,
 )
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, invert, make_pose, transform_points
@@ -43,13 +44,13 @@ class Collider:
     """The obstacles in the vine frame: the vine's mesh, the ground (z = 0) and the platform's
     deck under the base at each stop.
 
-    Two queries: a conservative one for the planner (`arm_clear`: each sphere's distance to the
-    mesh's nearest vertex, less what the surface between vertices can come closer, from a
-    compiled spatial hash: microseconds), and an exact one for judging contacts (`clearance`:
-    Open3D's point-to-triangle distances for the spheres the first finds near)."""
+    Two queries, compiled, on a spatial hash of the mesh's vertices: a conservative one for the
+    planner (`arm_clear`: no vertex within a sphere's radius, its clearance and what the surface
+    between vertices can come closer: microseconds), and an exact one for judging contacts
+    (`clearance`: point-to-triangle distances, for the spheres the first finds near; checked
+    against Open3D's in tests/test_prune.py)."""
 
     def __init__(self, vertices: Any, faces: Any, platform: PlatformConfig) -> None:
-        o3d = _lazy.open3d()
         V = np.ascontiguousarray(vertices, dtype=float)
         F = np.asarray(faces, np.int64)
         if len(V) == 0 or len(F) == 0:
@@ -63,11 +64,9 @@ class Collider:
         self.shape = (np.ceil((V.max(0) - self.origin) / GRID_CELL).astype(np.int64) + 2)
         self.starts, self.order = build_hash(V, self.origin, GRID_CELL, self.shape)
         self.blocks = build_blocks(self.starts, self.shape, BLOCK)
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(
-            o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32))
-        )
-        self._o3d = o3d
+        self.F = np.ascontiguousarray(F)
+        self.edge = float(edges.max())
+        self.vt_starts, self.vt_tris, self.vedge = vertex_triangles(V, self.F)
         self.platform = platform
         self.at_stop(np.eye(4))
 
@@ -106,20 +105,25 @@ class Collider:
         centres_base: Array,
         radii: Array,
         exempt: tuple[Array, float, Array] | None = None,
+        need: float = NEAR,
     ) -> tuple[float, int, str]:
         """The smallest gap (m) between the spheres (centres in the base) and any obstacle,
-        exact for the vine where it is under `NEAR`, with the sphere that has it and the
-        obstacle ("vine", "deck", "ground"). `exempt` = (cut point, jaw zone, mask): the masked
-        spheres' contacts with the vine within the jaw zone of the cut point do not count."""
+        with the sphere that has it and the obstacle ("vine", "deck", "ground"). A sphere's gap
+        to the vine is exact where its lower bound is under `need` (else that bound: what is
+        asked is whether the gap reaches `need`). `exempt` = (cut point, jaw zone, mask): the
+        masked spheres' contacts with the vine within the jaw zone of the cut point do not
+        count."""
         P = transform_points(self.T_vine_base, centres_base)
         radii = np.asarray(radii, float)
-        g = self.gaps(P, radii)
-        near = g[:, 0] < NEAR
+        g = self.gaps(P, radii, max(need, 0.0) + 1e-3)
+        near = g[:, 0] < need
         if near.any():
-            o3d = self._o3d
-            cp = self.scene.compute_closest_points(o3d.core.Tensor(P[near].astype(np.float32)))
-            closest = cp["points"].numpy().astype(float)
-            exact = np.linalg.norm(closest - P[near], axis=1) - radii[near]
+            Pn = np.ascontiguousarray(P[near])
+            dist, closest = np.empty(len(Pn)), np.empty((len(Pn), 3))
+            closest_points(Pn, float(radii[near].max()) + max(need, 0.0) + 1e-3, self.edge, self.V,
+                           self.F, self.origin, GRID_CELL, self.shape, self.starts, self.order,
+                           self.vt_starts, self.vt_tris, self.vedge, dist, closest)  # fmt: skip
+            exact = dist - radii[near]
             if exempt is not None:
                 cut, zone, mask = exempt
                 inside = np.linalg.norm(closest - cut, axis=1) < zone
@@ -156,6 +160,8 @@ class VinePlan:
     unreachable: dict[str, str] = field(default_factory=dict)
     """pose id -> why no stop reaches it."""
     planning_s: float = 0.0
+    platform: dict[str, Any] = field(default_factory=dict)
+    """The platform as placed (its offset and height set from the poses when automatic)."""
     tried: int = 0
     """(pose, stop) pairs tried."""
 
@@ -166,6 +172,7 @@ class VinePlan:
                 {"stop": s, "poses": [r.pose for r in self.order.get(s, [])]} for s in self.stops
             ],
             "unreachable": self.unreachable,
+            "platform": self.platform,
             "planning_s": self.planning_s,
         }
 
@@ -233,7 +240,7 @@ def _approach(
         return f"the arm's links come within {1000 * rc.clearance:.0f} mm of an obstacle at the pose"
     for k, qk in enumerate(qs):
         exempt = (np.asarray(cut, float), jaw_zone, tool) if k > 0 else None
-        gap, i, what = collider.clearance(arm.sphere_centres(qk), s.radius, exempt)
+        gap, i, what = collider.clearance(arm.sphere_centres(qk), s.radius, exempt, need=margin)
         worst = min(worst, gap)
         if gap < margin:
             where = "at the pose" if k == 0 else f"{k}/{rc.approach_steps} of the way in"

@@ -106,7 +106,7 @@ class _Contacts:
         self, collider: Collider, centres: Array, radii: Array, parts: tuple[str, ...],
         phase: str, cut: str, exempt: tuple[Array, float, Array] | None = None,
     ) -> None:  # fmt: skip
-        gap, i, what = collider.clearance(centres, radii, exempt)
+        gap, i, what = collider.clearance(centres, radii, exempt, need=0.0)
         if gap < 0:
             key = (phase, cut, parts[i], what)
             if not any(
@@ -197,6 +197,7 @@ class _Job:
         wall0 = time.perf_counter()
         twin, cfg = self.twin, self.cfg
         plan = plan_vine(twin, self.planner, seed=cfg.seed)
+        placed = self.planner.cfg.platform  # its offset and height set from the poses
         planning = plan.planning_s
         cuts: list[dict[str, Any]] = []
         for pid, why in plan.unreachable.items():
@@ -206,10 +207,10 @@ class _Job:
         simulated = 0.0
         x_prev: float | None = None
         for x in plan.stops:
-            drive = 0.0 if x_prev is None else abs(x - x_prev) / cfg.job.platform.drive_speed
-            platform = drive + cfg.job.platform.stop_settle
+            drive = 0.0 if x_prev is None else abs(x - x_prev) / placed.drive_speed
+            platform = drive + placed.stop_settle
             x_prev = x
-            B = stop_pose(x, cfg.job.platform)
+            B = stop_pose(x, placed)
             self.truth.at_stop(B)
             self.planner.collider.at_stop(B)
             if self.arm is not None:
