@@ -123,8 +123,10 @@ class CutConfig(JsonFields):
     """The cut: the tool moves straight in from the pruning pose until its blade is on the cut
     point, closes, and retreats along the same line."""
 
-    approach_speed: float = 0.1
-    """Tool speed along the straight approach and retreat (m/s)."""
+    approach_speed: float = 0.05
+    """Tool speed along the straight approach and retreat (m/s); the arm's command guard holds
+    it within the servo's envelope near a vine (`servo.config.Limits`, 5 cm/s by default): a
+    faster setting is refused when the job runs."""
     close_time: float = 0.5
     """Time (s) the shears take to close and open."""
     max_blade_error: float = 0.005

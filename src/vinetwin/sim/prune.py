@@ -45,13 +45,17 @@ SimKind = Literal["kinematic", "mujoco"]
 SIM_KINDS: tuple[SimKind, ...] = ("kinematic", "mujoco")
 #: Contacts are checked along a transit every this many seconds of its timing.
 TRANSIT_CHECK_DT = 0.02
+#: The folded arm's clearance is checked every this far (m) along a platform drive.
+DRIVE_STEP = 0.05
 #: How far (m) a transit's waypoints back the camera off along its optical axis.
 BACKOFF = 0.1
 #: A straight move ends within this distance (m) of its end, as the robot reads it (above the
 #: encoders' noise).
 STRAIGHT_TOLERANCE = 5e-4
+#: The retreat ends within this distance (m) of its end: the next transit starts from there.
+RETREAT_TOLERANCE = 0.005
 #: The straight move's proportional gain (1/s): slow enough for an arm that lags its command.
-STRAIGHT_GAIN = 5.0
+STRAIGHT_GAIN = 8.0
 #: Control period (s) of the straight cut and retreat.
 CUT_DT = 1.0 / 30.0
 #: The arm's rest (s) between the end of the straight move and the blade's closing.
@@ -125,6 +129,12 @@ class _Job:
 
         self.twin, self.cfg = twin, cfg
         self.profile = load_profile(cfg.profile)
+        top = SimConfig().limits.max_linear
+        if cfg.job.cut.approach_speed > top + 1e-12:
+            raise InputError(
+                f"approach_speed {cfg.job.cut.approach_speed} m/s is above the arm's command "
+                f"limit near a vine ({top} m/s, servo.config.Limits.max_linear)"
+            )
         true = twin.load_mesh()
         self.V, self.F = np.asarray(true.vertices), np.asarray(true.faces)
         robot_mesh = (self.V, self.F)
@@ -206,35 +216,48 @@ class _Job:
                                  twin.cut_point(pose.cut_point).point))  # fmt: skip
         simulated = 0.0
         x_prev: float | None = None
+        stopped = ""  # why the job ended early (the arm could not stow for a drive)
+        events: list[str] = []
         for x in plan.stops:
+            if stopped:
+                cuts += [self._skip_all(r, f"the job stopped: {stopped}") for r in plan.order[x]]
+                continue
+            blocked = self._drive_blocked(x_prev, x, placed)
+            if blocked:
+                events.append(f"stop {x:+.2f} m skipped: {blocked}")
+                cuts += [self._skip_all(r, f"platform: {blocked}") for r in plan.order[x]]
+                continue
             drive = 0.0 if x_prev is None else abs(x - x_prev) / placed.drive_speed
             platform = drive + placed.stop_settle
+            simulated += platform
             x_prev = x
             B = stop_pose(x, placed)
             self.truth.at_stop(B)
             self.planner.collider.at_stop(B)
             if self.arm is not None:
                 self._place_vine(B)
+                self.arm.set_q(STOW)
             q = STOW.copy()
             for r in plan.order[x]:
                 out, q, pl = self._cut(r, B, q)
                 out["time_s"] += platform
                 out["phases"]["platform"] = platform
+                simulated += out["time_s"] - platform
                 platform = 0.0
                 planning += pl
-                simulated += out["time_s"]
                 cuts.append(out)
-            # back home for the platform's next drive
+            # the arm folds back for the platform's next drive; if it cannot, nothing moves on
             q = np.clip(q, self.planner.arm.lower, self.planner.arm.upper)
             try:
                 tr = plan_transit(q, STOW, self.planner.valid, self.planner.arm.lower,
                                   self.planner.arm.upper, self._limits(), cfg.job.transit,
-                                  cfg.seed)  # fmt: skip
+                                  cfg.seed, self._via(q, STOW, B))  # fmt: skip
                 planning += tr.planning_s
                 simulated += tr.duration
                 self._run_transit(tr, "stow", "")
             except PlanningFailed as exc:
-                cuts.append(_skipped("", "", x, f"stowing the arm for the drive: {exc}"))
+                stopped = f"the arm could not fold back at stop {x:+.2f} m ({exc})"
+                events.append(stopped)
         wall = time.perf_counter() - wall0
         done = [c for c in cuts if c["status"] == "done"]
         right = [c for c in done if c["blade_error_m"] <= cfg.job.cut.max_blade_error]
@@ -249,6 +272,7 @@ class _Job:
             "contacts": self.contacts.events,
             "planning_s": planning,
             "reach_planning_s": plan.planning_s,
+            "events": events,
             "summary": {
                 "poses": len(twin.poses),
                 "reachable": len(twin.poses) - len(plan.unreachable),
@@ -265,6 +289,20 @@ class _Job:
                 "realtime_factor": simulated / wall if wall > 0 else math.nan,
             },
         }
+
+    def _skip_all(self, r: CutReach, reason: str) -> dict[str, Any]:
+        pose = self.twin.pose(r.pose)
+        return _skipped(r.cut, r.pose, r.stop, reason, self.twin.cut_point(pose.cut_point).point)
+
+    def _drive_blocked(self, x0: float | None, x1: float, platform: Any) -> str:
+        """Why the platform cannot drive from x0 to x1 with the arm folded (it would touch the
+        vine, checked every `DRIVE_STEP` along the way); "" when it can."""
+        xs = [x1] if x0 is None else list(np.arange(x0, x1, np.sign(x1 - x0) * DRIVE_STEP)) + [x1]
+        for x in xs:
+            self.planner.collider.at_stop(stop_pose(float(x), platform))
+            if not self.planner.valid(STOW):
+                return f"the folded arm would touch the vine at {float(x):+.2f} m along the row"
+        return ""
 
     def _limits(self) -> tuple[Array, Array, Array]:
         a = self.planner.arm
@@ -433,12 +471,13 @@ class _Job:
         if cc.close_time > CLOSE_SETTLE:
             robot.advance(cc.close_time - CLOSE_SETTLE)
         t1 = robot.t
-        self._straight(robot, -d, cc.approach_speed, cut, cut_id, "retreat")
+        # out along the same line, less precisely: the next transit starts wherever it ends
+        self._straight(robot, -d, cc.approach_speed, cut, cut_id, "retreat", RETREAT_TOLERANCE)
         return error, {"cut": t_in, "close": max(cc.close_time, CLOSE_SETTLE),
                        "retreat": robot.t - t1}  # fmt: skip
 
     def _straight(self, robot: Any, d: Array, speed: float, cut: Array, cut_id: str,
-                  phase: str) -> None:  # fmt: skip
+                  phase: str, tolerance: float = 0.0) -> None:  # fmt: skip
         """Moves the camera (as the robot believes it) by d in its own frame at `speed`:
         a proportional Cartesian controller on the reported pose, as a robot's straight move."""
         C0 = robot.T_base_camera()
@@ -451,7 +490,7 @@ class _Job:
             M = invert(C0) @ robot.T_base_camera()  # the camera now, in its start frame
             rest = M[:3, :3].T @ (d - M[:3, 3])  # what is left, in the camera frame now
             n = float(np.linalg.norm(rest))
-            if n < STRAIGHT_TOLERANCE:
+            if n < max(tolerance, STRAIGHT_TOLERANCE):
                 break
             v = rest / n * min(speed, STRAIGHT_GAIN * n)
             w = STRAIGHT_GAIN * so3_log(M[:3, :3].T)  # hold the start's orientation

@@ -136,12 +136,24 @@ def row_summary(vines: dict[str, dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def _rounded(x: Any) -> Any:
+    if isinstance(x, float):
+        return round(x, 9)
+    if isinstance(x, dict):
+        return {k: _rounded(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_rounded(v) for v in x]
+    return x
+
+
 def comparable(result: dict[str, Any]) -> dict[str, Any]:
     """What of a vine's result must be identical whichever executor ran it (its plan, cuts,
-    times, blade errors, contacts): everything but compute and wall time."""
+    times, blade errors, contacts): everything but compute and wall time, numbers to 1e-9 (a
+    worker's thread count changes the order of floating-point sums in the last digits: 1e-15
+    m between the in-process run and the pool, measured)."""
     cuts = [{k: v for k, v in c.items() if k != "phases"} | {
         "phases": {k: v for k, v in c.get("phases", {}).items() if k != "planning"}}
         for c in result["cuts"]]  # fmt: skip
     plan = {k: v for k, v in result["plan"].items() if k != "planning_s"}
-    return {"plan": plan, "cuts": cuts, "collisions": result["collisions"],
-            "contacts": result["contacts"]}  # fmt: skip
+    return _rounded({"plan": plan, "cuts": cuts, "collisions": result["collisions"],
+                     "contacts": result["contacts"]})  # fmt: skip

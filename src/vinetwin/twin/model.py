@@ -600,6 +600,8 @@ def find_twins(path: str | Path) -> list[Path]:
     if not root.is_dir():
         raise TwinError(f"{root}: no such folder")
     found = sorted({p.parent for p in root.rglob("twin.json")})
+    # a twin inside another (its field profile's rebuilt twin, say) is that twin's, not the row's
+    found = [t for t in found if not any(o != t and o in t.parents for o in found)]
     if not found:
         raise TwinError(
             f"{root}: neither a twin folder nor a folder of twin folders (no twin.json)"
