@@ -153,7 +153,7 @@ def test_a_transit_goes_around_a_cane_in_the_way() -> None:
     tr = plan_transit(q0, q1, valid, arm.lower, arm.upper, (arm.vmax, arm.amax, arm.jmax), cfg,
                       seed=1)  # fmt: skip
     assert len(tr.waypoints) > 2
-    ts, qs = tr.samples(0.005)
+    _, qs = tr.samples(0.005)
     assert np.allclose(qs[0], q0) and np.allclose(qs[-1], q1, atol=1e-9)
     for q in qs:
         gap, _, _ = c.clearance(arm.sphere_centres(q), arm.spheres.radius, need=0.0)
@@ -206,7 +206,7 @@ def test_no_poses_and_bad_settings_are_refused(tmp_path: Path, sample_twin_dir: 
     from vinetwin.sim.prune import PruneConfig, prune_twin
 
     twin = _twin_with(tmp_path, sample_twin_dir, [])
-    with pytest.raises(InputError, match="no pruning poses.*propose"):
+    with pytest.raises(InputError, match=r"no pruning poses.*propose"):
         prune_twin(twin.root, PruneConfig(sim="kinematic"))
     with pytest.raises(InputError, match="unknown profile"):
         prune_twin(sample_twin_dir, PruneConfig(sim="kinematic", profile="feild"))

@@ -127,8 +127,15 @@ def _rot_error(R: Array, Rt: Array) -> Array:  # pragma: no cover - compiled
 
 @nb.njit(cache=True)
 def _solve(
-    target: Array, T_flange_x: Array, q0: Array, lower: Array, upper: Array,
-    iterations: int, tol_t: float, tol_r: float, damping: float,
+    target: Array,
+    T_flange_x: Array,
+    q0: Array,
+    lower: Array,
+    upper: Array,
+    iterations: int,
+    tol_t: float,
+    tol_r: float,
+    damping: float,
 ) -> tuple[Array, float, float]:  # pragma: no cover - compiled
     """Damped least squares from q0 for the frame T_flange_x to reach `target` (in the base);
     joints clamped to their limits after each step. Returns (q, translation error, rotation

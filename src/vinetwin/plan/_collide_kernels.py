@@ -12,8 +12,11 @@ from vinetwin._numba import nb
 from vinetwin.arm import _frames
 from vinetwin.frames import Array
 
+#: Integer (or boolean) arrays: the hash's cells, the mesh's faces.
+Ints = np.ndarray
 
-def build_hash(V: Array, origin: Array, cell: float, shape: Array) -> tuple[Array, Array]:
+
+def build_hash(V: Array, origin: Array, cell: float, shape: Ints) -> tuple[Ints, Ints]:
     """(starts, order): the vertices of flat cell c are order[starts[c]:starts[c + 1]]."""
     idx = np.floor((V - origin) / cell).astype(np.int64)
     flat = (idx[:, 0] * shape[1] + idx[:, 1]) * shape[2] + idx[:, 2]
@@ -24,16 +27,16 @@ def build_hash(V: Array, origin: Array, cell: float, shape: Array) -> tuple[Arra
 
 @nb.njit(cache=True)
 def nearest_vertex(
-    p: Array, reach: float, V: Array, origin: Array, cell: float, shape: Array,
-    starts: Array, order: Array,
+    p: Array, reach: float, V: Array, origin: Array, cell: float, shape: Ints,
+    starts: Ints, order: Ints,
 ) -> float:  # pragma: no cover - compiled  # fmt: skip
     """Distance from p to the nearest vertex, if within `reach`; else `reach`."""
     best = reach * reach
     lo = np.empty(3, np.int64)
     hi = np.empty(3, np.int64)
     for a in range(3):
-        lo[a] = max(0, int(math.floor((p[a] - reach - origin[a]) / cell)))
-        hi[a] = min(shape[a] - 1, int(math.floor((p[a] + reach - origin[a]) / cell)))
+        lo[a] = max(0, math.floor((p[a] - reach - origin[a]) / cell))
+        hi[a] = min(shape[a] - 1, math.floor((p[a] + reach - origin[a]) / cell))
         if lo[a] > hi[a]:
             return reach
     for i in range(lo[0], hi[0] + 1):
@@ -54,8 +57,8 @@ def nearest_vertex(
 
 @nb.njit(cache=True)
 def point_gaps(
-    P: Array, radii: Array, reach: float, V: Array, origin: Array, cell: float, shape: Array,
-    starts: Array, order: Array, deck_lo: Array, deck_hi: Array, out: Array,
+    P: Array, radii: Array, reach: float, V: Array, origin: Array, cell: float, shape: Ints,
+    starts: Ints, order: Ints, deck_lo: Array, deck_hi: Array, out: Array,
 ) -> None:  # pragma: no cover - compiled  # fmt: skip
     """out[k, 0]: sphere k's gap to the nearest vine vertex (at most `reach`), out[k, 1] to the
     deck (an axis-aligned box), out[k, 2] to the ground (z = 0); P in the vine frame."""
@@ -73,7 +76,7 @@ def point_gaps(
 
 @nb.njit(cache=True)
 def arm_points(
-    q: Array, T_vine_base: Array, frame: Array, local: Array, points: Array
+    q: Array, T_vine_base: Array, frame: Ints, local: Array, points: Array
 ) -> None:  # pragma: no cover - compiled
     """points[k]: the centre of sphere k (on frame[k] at local[k]) in the vine frame."""
     F = np.empty((9, 4, 4))
@@ -88,25 +91,25 @@ def arm_points(
             )
 
 
-def build_blocks(starts: Array, shape: Array, factor: int) -> Array:
+def build_blocks(starts: Ints, shape: Ints, factor: int) -> Ints:
     """Which blocks of factor^3 cells hold a vertex."""
     counts = (starts[1:] - starts[:-1]).reshape(tuple(shape)) > 0
     bs = (np.asarray(shape) + factor - 1) // factor
     pad = bs * factor - np.asarray(shape)
     c = np.pad(counts, [(0, int(p)) for p in pad])
-    return c.reshape(bs[0], factor, bs[1], factor, bs[2], factor).any(axis=(1, 3, 5))
+    return np.asarray(c.reshape(bs[0], factor, bs[1], factor, bs[2], factor).any(axis=(1, 3, 5)))
 
 
 @nb.njit(cache=True)
 def _any_vertex_within(
-    p: Array, R: float, V: Array, origin: Array, cell: float, shape: Array, starts: Array,
-    order: Array, blocks: Array, factor: int,
+    p: Array, R: float, V: Array, origin: Array, cell: float, shape: Ints, starts: Ints,
+    order: Ints, blocks: Ints, factor: int,
 ) -> bool:  # pragma: no cover - compiled  # fmt: skip
     lo = np.empty(3, np.int64)
     hi = np.empty(3, np.int64)
     for a in range(3):
-        lo[a] = max(0, int(math.floor((p[a] - R - origin[a]) / cell)))
-        hi[a] = min(shape[a] - 1, int(math.floor((p[a] + R - origin[a]) / cell)))
+        lo[a] = max(0, math.floor((p[a] - R - origin[a]) / cell))
+        hi[a] = min(shape[a] - 1, math.floor((p[a] + R - origin[a]) / cell))
         if lo[a] > hi[a]:
             return False
     occupied = False  # the coarse blocks first
@@ -135,9 +138,9 @@ def _any_vertex_within(
 
 @nb.njit(cache=True)
 def arm_valid(
-    q: Array, T_vine_base: Array, frame: Array, local: Array, radii: Array, clearance: Array,
-    bound: float, V: Array, origin: Array, cell: float, shape: Array, starts: Array,
-    order: Array, blocks: Array, factor: int, deck_lo: Array, deck_hi: Array,
+    q: Array, T_vine_base: Array, frame: Ints, local: Array, radii: Array, clearance: Array,
+    bound: float, V: Array, origin: Array, cell: float, shape: Ints, starts: Ints,
+    order: Ints, blocks: Ints, factor: int, deck_lo: Array, deck_hi: Array,
 ) -> bool:  # pragma: no cover - compiled  # fmt: skip
     """Whether every sphere k at joints q keeps clearance[k] from the vine (no vertex within
     radius + clearance + bound), the deck and the ground."""
@@ -161,7 +164,7 @@ def arm_valid(
     return True
 
 
-def vertex_triangles(V: Array, F: Array) -> tuple[Array, Array, Array]:
+def vertex_triangles(V: Array, F: Ints) -> tuple[Ints, Ints, Array]:
     """CSR of the triangles around each vertex (vertex v's are tris[starts[v]:starts[v + 1]])
     and each vertex's longest incident edge."""
     flat = F.ravel()
@@ -203,8 +206,8 @@ def _closest_on_triangle(p: Array, a: Array, b: Array, c: Array) -> Array:  # pr
 
 @nb.njit(cache=True)
 def closest_points(
-    P: Array, reach: float, edge: float, V: Array, F: Array, origin: Array, cell: float,
-    shape: Array, starts: Array, order: Array, vt_starts: Array, vt_tris: Array, vedge: Array,
+    P: Array, reach: float, edge: float, V: Array, F: Ints, origin: Array, cell: float,
+    shape: Ints, starts: Ints, order: Ints, vt_starts: Ints, vt_tris: Ints, vedge: Array,
     dist: Array, closest: Array,
 ) -> None:  # pragma: no cover - compiled  # fmt: skip
     """For each point: its exact distance to the mesh and the nearest surface point, when that
@@ -221,8 +224,8 @@ def closest_points(
         hi = np.empty(3, np.int64)
         empty = False
         for a in range(3):
-            lo[a] = max(0, int(math.floor((p[a] - R - origin[a]) / cell)))
-            hi[a] = min(shape[a] - 1, int(math.floor((p[a] + R - origin[a]) / cell)))
+            lo[a] = max(0, math.floor((p[a] - R - origin[a]) / cell))
+            hi[a] = min(shape[a] - 1, math.floor((p[a] + R - origin[a]) / cell))
             if lo[a] > hi[a]:
                 empty = True
         if not empty:

@@ -130,7 +130,7 @@ def plan_vine(
     plan.stops = choose_stops(reach)
     for s in plan.stops:
         plan.order[s] = []
-    for pid, by_stop in reach.items():
+    for by_stop in reach.values():
         here = [s for s in plan.stops if s in by_stop]
         if here:
             best = max(here, key=lambda s: by_stop[s].manipulability)

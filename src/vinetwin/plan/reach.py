@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from vinetwin.arm import HOME, STOW, ArmModel, base_pose
+from vinetwin.errors import InputError
+from vinetwin.frames import Array, invert, make_pose, transform_points
 from vinetwin.plan._collide_kernels import (
     arm_valid,
     build_blocks,
@@ -27,8 +29,6 @@ from vinetwin.plan._collide_kernels import (
     point_gaps,
     vertex_triangles,
 )
-from vinetwin.errors import InputError
-from vinetwin.frames import Array, invert, make_pose, transform_points
 from vinetwin.plan.job_config import JobConfig, PlatformConfig
 
 #: The largest joint jump (rad) between neighbouring steps of a straight approach.
@@ -61,7 +61,7 @@ class Collider:
         lie within its circumradius, at most its longest edge / sqrt(3), of a corner)."""
         self.V = V
         self.origin = V.min(0) - GRID_CELL
-        self.shape = (np.ceil((V.max(0) - self.origin) / GRID_CELL).astype(np.int64) + 2)
+        self.shape = np.ceil((V.max(0) - self.origin) / GRID_CELL).astype(np.int64) + 2
         self.starts, self.order = build_hash(V, self.origin, GRID_CELL, self.shape)
         self.blocks = build_blocks(self.starts, self.shape, BLOCK)
         self.F = np.ascontiguousarray(F)
@@ -237,7 +237,9 @@ def _approach(
     tool = np.array([p == "tool" for p in s.part])
     worst = math.inf
     if not collider.arm_clear(arm, q, rc.clearance, margin):
-        return f"the arm's links come within {1000 * rc.clearance:.0f} mm of an obstacle at the pose"
+        return (
+            f"the arm's links come within {1000 * rc.clearance:.0f} mm of an obstacle at the pose"
+        )
     for k, qk in enumerate(qs):
         exempt = (np.asarray(cut, float), jaw_zone, tool) if k > 0 else None
         gap, i, what = collider.clearance(arm.sphere_centres(qk), s.radius, exempt, need=margin)

@@ -7,6 +7,7 @@ trajectory is checked again, densely, before it is returned."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable
@@ -73,7 +74,7 @@ def time_path(waypoints: list[Array], vmax: Array, amax: Array, jmax: Array) -> 
     ruckig = _lazy.module("ruckig", "the transit timing (pip install ruckig)")
     out = Transit([np.asarray(w, float) for w in waypoints])
     otg = ruckig.Ruckig(7)
-    for a, b in zip(out.waypoints[:-1], out.waypoints[1:], strict=True):
+    for a, b in itertools.pairwise(out.waypoints):
         inp = ruckig.InputParameter(7)
         inp.current_position = a.tolist()
         inp.target_position = b.tolist()
@@ -121,8 +122,7 @@ def plan_transit(
     for chain in [[], *(via or [])]:
         cand = [q0, *[np.asarray(w, float) for w in chain], q1]
         if all(counted(w) for w in cand[1:-1]) and all(
-            _segment_ok(a, b, counted, cfg.resolution)[0]
-            for a, b in zip(cand[:-1], cand[1:], strict=True)
+            _segment_ok(a, b, counted, cfg.resolution)[0] for a, b in itertools.pairwise(cand)
         ):
             path = cand
             break
@@ -132,7 +132,7 @@ def plan_transit(
     vmax, amax, jmax = limits
     transit = time_path(path, vmax * scale, amax * scale, jmax * scale)
     # the timed trajectory, checked again at the resolution
-    for a, b in zip(path[:-1], path[1:], strict=True):
+    for a, b in itertools.pairwise(path):
         ok, _ = _segment_ok(a, b, counted, cfg.resolution)
         if not ok:
             raise PlanningFailed("the simplified path collides (planner resolution too coarse)")
@@ -167,7 +167,7 @@ def _ompl_path(
             out: Any = _ompl_plan(q0, q1, valid, lower, upper, cfg, seed)
         except PlanningFailed as exc:
             out = str(exc)
-        except BaseException as exc:  # noqa: BLE001 - reported to the parent
+        except BaseException as exc:
             out = f"the planner failed: {type(exc).__name__}: {exc}"
         send.send_bytes(pickle.dumps(out))
         send.close()
@@ -226,4 +226,4 @@ def _ompl_plan(
                              f"({solved})")  # fmt: skip
     ss.simplifySolution(min(0.2, cfg.timeout))
     p = ss.getSolutionPath()
-    return [[float(p.getState(k)[i]) for i in range(7)] for k in range(p.getStateCount())]
+    return [np.array([p.getState(k)[i] for i in range(7)]) for k in range(p.getStateCount())]

@@ -95,9 +95,7 @@ class PruneConfig(JsonFields):
         if self.sim not in SIM_KINDS:
             raise InputError(f"unknown sim {self.sim!r}; choose one of: {', '.join(SIM_KINDS)}")
         if not (0.5 <= self.servo_duration <= 120.0) or not (0.0 <= self.servo_settle <= 5.0):
-            raise InputError(
-                "servo_duration must lie in [0.5, 120] s and servo_settle in [0, 5] s"
-            )
+            raise InputError("servo_duration must lie in [0.5, 120] s and servo_settle in [0, 5] s")
 
 
 @dataclass
@@ -281,7 +279,8 @@ class _Job:
                 "skipped": len(cuts) - len(done),
                 "median_time_per_cut_s": float(np.median(times)) if times else math.nan,
                 "median_blade_error_mm": (
-                    1000 * float(np.median([c["blade_error_m"] for c in done])) if done
+                    1000 * float(np.median([c["blade_error_m"] for c in done]))
+                    if done
                     else math.nan
                 ),
                 "simulated_s": simulated,
@@ -344,7 +343,7 @@ class _Job:
         return chains
 
     def _run_transit(self, tr: Any, phase: str, cut: str) -> None:
-        ts, qs = tr.samples(TRANSIT_CHECK_DT)
+        _, qs = tr.samples(TRANSIT_CHECK_DT)
         arm = self.planner.arm
         for qk in qs:
             self.check_pose(qk, arm.camera(qk), phase, cut)
@@ -377,8 +376,17 @@ class _Job:
         phases["planning"] = tr.planning_s
         phases["transit"] = tr.duration
         import os
-        if os.environ.get("VT_DEBUG"):  # noqa
-            print("transit", r.pose, len(tr.waypoints), tr.checks, round(tr.planning_s, 3), np.round(tr.durations, 2), np.round(np.abs(q_goal - q), 2))
+
+        if os.environ.get("VT_DEBUG"):
+            print(
+                "transit",
+                r.pose,
+                len(tr.waypoints),
+                tr.checks,
+                round(tr.planning_s, 3),
+                np.round(tr.durations, 2),
+                np.round(np.abs(q_goal - q), 2),
+            )
         self._run_transit(tr, "transit", r.cut)
         out, q_after = self._servo_and_cut(r, pose, goal, start, cut, q_goal, B, phases)
         return out, q_after, tr.planning_s
@@ -465,7 +473,9 @@ class _Job:
         robot.advance(CLOSE_SETTLE)  # the arm comes to rest as the blades start to close
         T_base_vine = session.T_base_vine
         cam_vine = invert(T_base_vine) @ robot.true_camera()
-        blade_true = transform_points(cam_vine @ invert(arm.T_flange_camera), arm.blade_flange[None])[0]
+        blade_true = transform_points(
+            cam_vine @ invert(arm.T_flange_camera), arm.blade_flange[None]
+        )[0]
         cut_true = transform_points(source.vine_at(robot.t), cut[None])[0]
         error = float(np.linalg.norm(blade_true - cut_true))
         if cc.close_time > CLOSE_SETTLE:

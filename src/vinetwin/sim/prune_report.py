@@ -143,7 +143,9 @@ def write_report(data: dict[str, Any], out: Path) -> None:
         md += [f"## {name}: failed", "", err, ""]
         page += [f"<h2>{html.escape(name)}: failed</h2><p>{html.escape(err)}</p>"]
     atomic_write_text(out / "report.md", "\n".join(md) + "\n")
-    style = "<style>table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px}</style>"
+    style = (
+        "<style>table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px}</style>"
+    )
     atomic_write_text(out / "report.html",
                       f"<!doctype html><meta charset=utf-8><title>Pruning job</title>{style}"
                       + "".join(page))  # fmt: skip

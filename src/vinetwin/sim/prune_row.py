@@ -25,6 +25,7 @@ from vinetwin.twin.model import Twin, find_twins
 
 log = logging.getLogger(__name__)
 
+
 def _digest(twin_dir: Path, cfg: PruneConfig) -> str:
     twin = Twin.load(twin_dir)
     h = hashlib.sha256()

@@ -83,7 +83,9 @@ DEFAULT_T_FLANGE_CAMERA: Array = make_pose(np.eye(3), [0.05, 0.0, 0.04])
 TOOL_REACH = 0.07
 #: Default tool frame on the flange: its origin is the blade point, TOOL_REACH ahead of the camera
 #: on its optical axis, its +Z the direction the blade moves in. Replace it with your tool's.
-DEFAULT_T_FLANGE_TOOL: Array = DEFAULT_T_FLANGE_CAMERA @ make_pose(np.eye(3), [0.0, 0.0, TOOL_REACH])
+DEFAULT_T_FLANGE_TOOL: Array = DEFAULT_T_FLANGE_CAMERA @ make_pose(
+    np.eye(3), [0.0, 0.0, TOOL_REACH]
+)
 
 
 # ----------------------------------------------------------------------------- entities
