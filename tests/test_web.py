@@ -464,3 +464,42 @@ def test_browser_proposes_and_reviews_cuts(twin_dir: Path, tmp_path: Path) -> No
             ctx.close()
     finally:
         app.close()
+
+
+def test_browser_shows_the_pruning_plan(twin_dir: Path) -> None:
+    """In headless Chromium: Plan the job lists the platform stops with each stop's poses in
+    order (every pose of the sample reached) and draws the stops and the order in the scene;
+    a pose no stop reaches is listed with its reason."""
+    pytest.importorskip("ompl")
+    from playwright.sync_api import sync_playwright
+
+    from vinetwin.twin.model import Twin
+    from vinetwin.web.server import serve
+
+    twin = Twin.load(twin_dir)
+    high = twin.add_pose(twin.add_cut_point([0.0, 0.0, 2.6], [0, 0, 1]).id)
+    twin.save()
+    port = _free_port()
+    app = serve(twin_dir, port=port)
+    try:
+        with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
+            ctx = launch(pw, profile)
+            page = ctx.new_page()
+            page.goto(f"http://127.0.0.1:{port}")
+            page.wait_for_selector("canvas", timeout=60_000)
+            page.get_by_role("button", name="Plan the job").click()
+            end = time.monotonic() + 120
+            while time.monotonic() < end and getattr(app, "plan_result", None) is None:
+                time.sleep(0.2)
+            result = app.plan_result
+            planned = {r.pose for rs in result.order.values() for r in rs}
+            assert planned == {p.id for p in twin.poses} - {high.id}
+            assert "no platform stop reaches it" in result.unreachable[high.id]
+            page.get_by_text("platform stops").first.wait_for(timeout=30_000)
+            page.get_by_text(f"{high.id}: no platform stop reaches it").first.wait_for(
+                timeout=30_000
+            )
+            assert len(app.plan_nodes) == 2 * len(result.stops) + len(planned)
+            ctx.close()
+    finally:
+        app.close()

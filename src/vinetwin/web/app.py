@@ -26,7 +26,7 @@ from vinetwin.cloud import ICP_VARIANTS
 from vinetwin.conventions import viser_wxyz_position
 from vinetwin.errors import VinetwinError
 from vinetwin.twin.poses import DEFAULT_STANDOFF, STANDOFF_RANGE, Approach
-from vinetwin.web import proposals
+from vinetwin.web import plan_view, proposals
 from vinetwin.web.config import WebConfig
 from vinetwin.web.session import AuthoringSession
 
@@ -422,6 +422,7 @@ class App:
                 on(lambda: sess.delete_pose(sess.selected) if sess.selected else None)
             )
         self.proposal_status = proposals.add_panel(self)
+        self.plan_status = plan_view.add_panel(self)
         with g.add_folder("Edit"):
             self.undo = g.add_button("Undo")
             self.undo.on_click(on(sess.undo))
