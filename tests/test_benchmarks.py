@@ -215,3 +215,15 @@ def test_propose_benchmark_quick(tmp_path: Path) -> None:
     assert row["proposed"] >= 8 and row["with_pose"] == row["proposed"]
     assert row["collisions"] == 0 and row["min_body_distance_mm"] > 0
     assert row["median_reference_points"] > 100
+
+
+def test_prune_benchmark_quick(tmp_path: Path) -> None:
+    """`benchmarks/prune.py --quick`: the sample pruned (kinematic, ideal) with every cut done
+    right and no collision; our collision check and Open3D's in the same planner; our IK."""
+    out = tmp_path / "prune.json"
+    _, data = _quick("prune.py", out)
+    (row,) = data["rows"]
+    assert row["done_right"] == row["reachable"] == 5 and row["collisions"] == 0
+    checks = data["collision_checks"]
+    assert checks["vinetwin"]["median_transit_s"] > 0 and checks["open3d"]["check_us"] > 0
+    assert data["inverse_kinematics"]["vinetwin"]["solved"] >= 35

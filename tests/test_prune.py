@@ -304,7 +304,7 @@ def test_the_sample_is_pruned_on_the_mujoco_panda(tmp_path: Path, sample_twin_di
     from vinetwin.sim.prune_row import prune_row
 
     twin = _twin_with(tmp_path, sample_twin_dir, ["p1", "p2", "p3", "p4", "p5"])
-    data = prune_row(twin.root, PruneConfig(sim="mujoco"), tmp_path / "out")
+    data = prune_row(twin.root, PruneConfig(sim="mujoco"), tmp_path / "out", mcap=True)
     s = data["summary"]
     assert s["done"] == 5 and s["collisions"] == 0, data["vines"]
     (v,) = data["vines"].values()
@@ -312,6 +312,17 @@ def test_the_sample_is_pruned_on_the_mujoco_panda(tmp_path: Path, sample_twin_di
     assert all(set(c["phases"]) >= {"transit", "servo", "cut", "close", "retreat"}
                for c in v["cuts"])  # fmt: skip
     assert v["plan"]["stops"] and s["realtime_factor"] > 1.0
+    from mcap.reader import make_reader
+
+    (bag,) = (tmp_path / "out" / "vines").glob("*.mcap/*.mcap")
+    with bag.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics is not None
+    counts = {c.topic: summary.statistics.channel_message_counts[c.id]
+              for c in summary.channels.values()}  # fmt: skip
+    assert counts["/tf"] > 500 and counts["/joint_states"] > 500 and counts["/vinetwin/events"] > 20
+    # the bag's clock is the job's: it ends when the vine's simulated time does
+    assert abs(summary.statistics.message_end_time / 1e9 - v["summary"]["simulated_s"]) < 0.05
     write_report(data, tmp_path / "out")
     assert (tmp_path / "out" / "report.html").exists()
     assert (tmp_path / "out" / "v.twin_vine.png").stat().st_size > 10_000

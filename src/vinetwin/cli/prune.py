@@ -29,6 +29,9 @@ class Prune:
     cluster: Annotated[ClusterConfig, Nested] = field(default_factory=ClusterConfig)
     workers: int = 1
     """Vines run at once on the local pool (0: one per core)."""
+    mcap: bool = False
+    """Also write each vine run now as OUT/vines/NAME.mcap/ (a ROS 2 bag with MCAP storage:
+    the base and camera poses, the joints, the job's events; Foxglove opens it)."""
     force: bool = False
     """Run every vine again, even those already in OUT/vines with the same inputs."""
     overwrite: bool = False
@@ -42,7 +45,7 @@ class Prune:
         out = self.out or (self.twin / "prune")
         executor = self.cluster.executor(self.workers) or ExecutorConfig(workers=self.workers)
         data = with_progress("pruning", lambda progress: prune_row(
-            self.twin, self.config, out, executor, self.force, progress))  # fmt: skip
+            self.twin, self.config, out, executor, self.force, progress, self.mcap))  # fmt: skip
         write_report(data, out)
         s = data["summary"]
         log.info(

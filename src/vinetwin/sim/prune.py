@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -39,6 +40,7 @@ from vinetwin.plan.job_config import JobConfig
 from vinetwin.plan.reach import Collider, CutReach, stop_pose
 from vinetwin.plan.transit import PlanningFailed, plan_transit
 from vinetwin.sim.config import SimConfig, load_profile
+from vinetwin.sim.prune_mcap import Track, write_mcap
 from vinetwin.twin.model import Twin
 
 SimKind = Literal["kinematic", "mujoco"]
@@ -155,6 +157,7 @@ class _Job:
             self.arm = PandaArm(T_flange_camera=twin.T_flange_camera, camera=twin.camera,
                                 vine=(self.V, self.F))  # fmt: skip
         self.contacts = _Contacts()
+        self.track = Track()
         self.rng = np.random.default_rng([cfg.seed, 45])
         base = SimConfig()
         from vinetwin.sim.field import registration_error
@@ -230,6 +233,9 @@ class _Job:
             simulated += platform
             x_prev = x
             B = stop_pose(x, placed)
+            self.track.event(f"platform to the stop at {x:+.2f} m")
+            self.track.clock += platform
+            self.track.pose(self.track.clock, B, B @ self.planner.arm.camera(STOW), STOW)
             self.truth.at_stop(B)
             self.planner.collider.at_stop(B)
             if self.arm is not None:
@@ -256,6 +262,7 @@ class _Job:
             except PlanningFailed as exc:
                 stopped = f"the arm could not fold back at stop {x:+.2f} m ({exc})"
                 events.append(stopped)
+                self.track.event(f"stopped: {stopped}", 2)
         wall = time.perf_counter() - wall0
         done = [c for c in cuts if c["status"] == "done"]
         right = [c for c in done if c["blade_error_m"] <= cfg.job.cut.max_blade_error]
@@ -343,10 +350,14 @@ class _Job:
         return chains
 
     def _run_transit(self, tr: Any, phase: str, cut: str) -> None:
-        _, qs = tr.samples(TRANSIT_CHECK_DT)
+        ts, qs = tr.samples(TRANSIT_CHECK_DT)
         arm = self.planner.arm
-        for qk in qs:
+        B = self.truth.T_vine_base
+        self.track.event(f"{phase} {cut}".strip())
+        for t, qk in zip(ts, qs, strict=True):
             self.check_pose(qk, arm.camera(qk), phase, cut)
+            self.track.pose(self.track.clock + t, B, B @ arm.camera(qk), qk)
+        self.track.clock += tr.duration
         if self.arm is not None:
             self.arm.set_q(qs[-1])
 
@@ -372,21 +383,10 @@ class _Job:
             tr = plan_transit(q, q_goal, self.planner.valid, arm.lower, arm.upper,
                               self._limits(), cfg.job.transit, cfg.seed, via)  # fmt: skip
         except PlanningFailed as exc:
+            self.track.event(f"{r.cut} skipped: transit: {exc}", 1)
             return _skipped(r.cut, r.pose, r.stop, f"transit: {exc}", cut), q, 0.0
         phases["planning"] = tr.planning_s
         phases["transit"] = tr.duration
-        import os
-
-        if os.environ.get("VT_DEBUG"):
-            print(
-                "transit",
-                r.pose,
-                len(tr.waypoints),
-                tr.checks,
-                round(tr.planning_s, 3),
-                np.round(tr.durations, 2),
-                np.round(np.abs(q_goal - q), 2),
-            )
         self._run_transit(tr, "transit", r.cut)
         out, q_after = self._servo_and_cut(r, pose, goal, start, cut, q_goal, B, phases)
         return out, q_after, tr.planning_s
@@ -409,8 +409,13 @@ class _Job:
                        arm_q=tuple(float(v) for v in q) if self.arm is not None else None)  # fmt: skip
         world = SimWorld(self.backend, twin.perception, self.reference_backend, arm=self.arm,
                          T_flange_camera=twin.T_flange_camera)  # fmt: skip
+        self.track.event(f"servo {r.cut}")
+        start_clock = self.track.clock  # the session's own clock starts at 0 here
         run = simulate(spec, world, keep=True)
         session = run.session
+        for t, T in zip(run.t, run.T, strict=True):
+            self.track.pose(start_clock + t, B, T)
+        self.track.clock = start_clock + (run.t[-1] if run.t else 0.0)
         try:
             summ = run.summary()
             phases["servo"] = float(run.t[-1]) if run.t else 0.0
@@ -428,11 +433,14 @@ class _Job:
                     f"{summ['final_rotation']:.3f} rad from the pose)"
                 )
                 out = _skipped(r.cut, r.pose, r.stop, f"servo: {why}", cut)
+                self.track.event(f"{r.cut} skipped: servo: {why}", 1)
                 out["time_s"] = _simulated(phases)
                 out["phases"] = phases
                 return out, self._joints(q, session)
-            blade_error, phases_cut = self._cut_motion(session, cut, r.cut)
+            self.track.event(f"cut {r.cut}")
+            blade_error, phases_cut = self._cut_motion(session, cut, r.cut, start_clock, B)
             phases.update(phases_cut)
+            self.track.event(f"{r.cut} done: blade {1000 * blade_error:.2f} mm from the cut")
         finally:
             session.close()
         return {
@@ -452,7 +460,9 @@ class _Job:
         qn = self.planner.arm.solve(invert(B) @ T, [q])
         return q if qn is None else qn
 
-    def _cut_motion(self, session: Any, cut: Array, cut_id: str) -> tuple[float, dict[str, float]]:
+    def _cut_motion(
+        self, session: Any, cut: Array, cut_id: str, clock0: float, B: Array
+    ) -> tuple[float, dict[str, float]]:
         """Straight in until the robot believes the blade is on the cut, close, straight out.
         Returns the blade's true distance to the true cut point when it closed, and the
         phases' times."""
@@ -467,7 +477,7 @@ class _Job:
         blade_cam = transform_points(invert(arm.T_flange_camera), arm.blade_flange[None])[0]
         d = cut_cam - blade_cam
         t0 = robot.t
-        self._straight(robot, d, cc.approach_speed, cut, cut_id, "cut")
+        self._straight(robot, d, cc.approach_speed, cut, cut_id, "cut", clock0=clock0, B=B)
         t_in = robot.t - t0
         robot.stop("closing the shears")
         robot.advance(CLOSE_SETTLE)  # the arm comes to rest as the blades start to close
@@ -482,12 +492,16 @@ class _Job:
             robot.advance(cc.close_time - CLOSE_SETTLE)
         t1 = robot.t
         # out along the same line, less precisely: the next transit starts wherever it ends
-        self._straight(robot, -d, cc.approach_speed, cut, cut_id, "retreat", RETREAT_TOLERANCE)
+        self.track.event(f"retreat {cut_id}", t=clock0 + robot.t)
+        self._straight(robot, -d, cc.approach_speed, cut, cut_id, "retreat", RETREAT_TOLERANCE,
+                       clock0, B)  # fmt: skip
+        self.track.clock = clock0 + robot.t
         return error, {"cut": t_in, "close": max(cc.close_time, CLOSE_SETTLE),
                        "retreat": robot.t - t1}  # fmt: skip
 
     def _straight(self, robot: Any, d: Array, speed: float, cut: Array, cut_id: str,
-                  phase: str, tolerance: float = 0.0) -> None:  # fmt: skip
+                  phase: str, tolerance: float = 0.0, clock0: float = 0.0,
+                  B: Array | None = None) -> None:  # fmt: skip
         """Moves the camera (as the robot believes it) by d in its own frame at `speed`:
         a proportional Cartesian controller on the reported pose, as a robot's straight move."""
         C0 = robot.T_base_camera()
@@ -507,7 +521,10 @@ class _Job:
             robot.command(np.concatenate([v, w]))
             robot.advance(CUT_DT)
             q = self.arm.q if self.arm is not None else None
-            self.check_pose(q, to_base @ robot.true_camera(), phase, cut_id, exempt_cut=cut)
+            T_base_camera = to_base @ robot.true_camera()
+            self.check_pose(q, T_base_camera, phase, cut_id, exempt_cut=cut)
+            if B is not None:
+                self.track.pose(clock0 + robot.t, B, B @ T_base_camera, q)
         robot.stop(f"{phase} done")
 
 
@@ -531,12 +548,19 @@ def _skipped(
             "phases": {}}  # fmt: skip
 
 
-def prune_twin(path: Any, cfg: PruneConfig | None = None) -> dict[str, Any]:
-    """One vine's whole job in simulation; its result as plain data (see the module)."""
+def prune_twin(
+    path: Any, cfg: PruneConfig | None = None, mcap: Path | None = None
+) -> dict[str, Any]:
+    """One vine's whole job in simulation; its result as plain data (see the module). `mcap`:
+    also write the job as a ROS 2 bag with MCAP storage there (`sim.prune_mcap`)."""
     cfg = cfg or PruneConfig()
     twin = Twin.load(path)
     job = _Job(twin, cfg)
     try:
-        return job.run()
+        out = job.run()
     finally:
         job.close()
+    if mcap is not None:
+        write_mcap(Path(mcap), job.track)
+        out["mcap"] = str(mcap)
+    return out

@@ -35,10 +35,15 @@ def _digest(twin_dir: Path, cfg: PruneConfig) -> str:
     return h.hexdigest()
 
 
-def _job(job: tuple[str, dict[str, Any]]) -> dict[str, Any]:
-    """One vine (a worker's job: plain data in, plain data out)."""
-    path, cfg = job
-    return prune_twin(path, PruneConfig.from_dict(cfg))
+def _job(job: tuple[str, dict[str, Any], str]) -> dict[str, Any]:
+    """One vine (a worker's job: plain data in, plain data out; the MCAP, if asked, written by
+    the worker, a fresh one over any earlier run's)."""
+    import shutil
+
+    path, cfg, mcap = job
+    if mcap:
+        shutil.rmtree(mcap, ignore_errors=True)
+    return prune_twin(path, PruneConfig.from_dict(cfg), Path(mcap) if mcap else None)
 
 
 def vine_name(twin_dir: Path, base: Path) -> str:
@@ -53,16 +58,18 @@ def prune_row(
     executor: ExecutorConfig | None = None,
     force: bool = False,
     progress: Callable[[dict[str, Any], int, int], None] | None = None,
+    mcap: bool = False,
 ) -> dict[str, Any]:
     """Prunes every twin at `path` (one twin, or a folder of them); returns the row's data
-    (`vines`: each vine's result, `summary`), also written to OUT/prune.json."""
+    (`vines`: each vine's result, `summary`), also written to OUT/prune.json. `mcap`: each vine
+    run now also as OUT/vines/NAME.mcap/ (a ROS 2 bag for Foxglove)."""
     root = Path(path)
     twins = find_twins(root)
     base = root.parent if (root / "twin.json").exists() else root
     vines_dir = out / "vines"
     vines_dir.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict[str, Any]] = {}
-    jobs: list[tuple[str, dict[str, Any]]] = []
+    jobs: list[tuple[str, dict[str, Any], str]] = []
     names: dict[str, str] = {}
     digests: dict[str, str] = {}
     for t in twins:
@@ -80,7 +87,7 @@ def prune_row(
                 results[name] = old["result"]
                 log.info("%s: done before (same inputs), kept", name)
                 continue
-        jobs.append((str(t), cfg.to_dict()))
+        jobs.append((str(t), cfg.to_dict(), str(vines_dir / f"{name}.mcap") if mcap else ""))
     failed: dict[str, str] = {}
     done = 0
     for outcome in run_unordered(_job, jobs, executor):
