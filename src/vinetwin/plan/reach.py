@@ -196,26 +196,32 @@ def reach_cut(
     prefer: Array | None = None,
 ) -> tuple[Array, Array, float, float] | str:
     """(q at the pose, q with the blade on the cut, manipulability, clearance) from the base at
-    T_vine_base, or the reason it cannot. Of the inverse kinematics solutions the seeds (`warm`,
-    `HOME`, random ones) reach, the one nearest `prefer` (default: the first warm seed, else
-    `STOW`) in joint time whose approach is clear is taken."""
+    T_vine_base, or the reason it cannot. Of the inverse kinematics solutions the `warm` seeds
+    reach, then (if none of those serves) those `HOME` and random seeds reach, the one nearest
+    `prefer` (default: the first warm seed, else `STOW`) in joint time whose approach is clear
+    is taken."""
     rc = cfg.reach
     T_base_vine = invert(T_vine_base)
     T_pose = T_base_vine @ np.asarray(T_vine_camera, float)
     cut_base = transform_points(T_base_vine, np.asarray(cut, float)[None])[0]
-    seeds = [*warm, HOME] + [rng.uniform(arm.lower, arm.upper) for _ in range(rc.seeds)]
-    found = arm.solutions(T_pose, seeds, min_manipulability=rc.min_manipulability,
-                          limit_margin=rc.limit_margin)  # fmt: skip
-    if not found:
-        return "no inverse kinematics solution within the joint limits, away from singularities"
     ref = prefer if prefer is not None else (warm[0] if warm else STOW)
-    found.sort(key=lambda q: joint_time(ref, q, arm.vmax))
-    why = ""
-    for q in found:
-        got = _approach(arm, collider, T_pose, cut, cut_base, q, cfg, margin, jaw_zone)
-        if not isinstance(got, str):
-            return got
-        why = why or got
+    why, tried = "", 0
+    # the warm seeds first (their solutions are the near ones), then the others
+    for batch in (
+        list(warm),
+        [HOME] + [rng.uniform(arm.lower, arm.upper) for _ in range(rc.seeds)],
+    ):
+        found = arm.solutions(T_pose, batch, min_manipulability=rc.min_manipulability,
+                              limit_margin=rc.limit_margin)  # fmt: skip
+        found.sort(key=lambda q: joint_time(ref, q, arm.vmax))
+        for q in found:
+            tried += 1
+            got = _approach(arm, collider, T_pose, cut, cut_base, q, cfg, margin, jaw_zone)
+            if not isinstance(got, str):
+                return got
+            why = why or got
+    if not tried:
+        return "no inverse kinematics solution within the joint limits, away from singularities"
     return why
 
 

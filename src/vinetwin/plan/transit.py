@@ -30,7 +30,9 @@ class Transit:
     planning_s: float = 0.0
     """Compute spent planning and timing it (s)."""
     checks: int = 0
-    """Collision checks the planner made."""
+    """Collision checks made in this process (the planner's own, in its child, not counted)."""
+    how: str = ""
+    """straight, via (backing off along the optical axes) or the OMPL planner's name."""
     _trajectories: list[object] = field(default_factory=list, repr=False)
 
     @property
@@ -52,6 +54,10 @@ class Transit:
         n = max(2, math.ceil(self.duration / dt) + 1)
         ts = np.linspace(0.0, self.duration, n)
         return ts, np.array([self.at(t) for t in ts])
+
+
+#: Time (s) OMPL's path simplifier may take (shortcuts and smoothing of a planner's path).
+SIMPLIFY_S = 0.05
 
 
 class PlanningFailed(Exception):
@@ -119,12 +125,13 @@ def plan_transit(
         if not counted(q):
             raise PlanningFailed(f"the transit's {name} configuration collides")
     path: list[Array] | None = None
-    for chain in [[], *(via or [])]:
+    how = cfg.planner
+    for k, chain in enumerate([[], *(via or [])]):
         cand = [q0, *[np.asarray(w, float) for w in chain], q1]
         if all(counted(w) for w in cand[1:-1]) and all(
             _segment_ok(a, b, counted, cfg.resolution)[0] for a, b in itertools.pairwise(cand)
         ):
-            path = cand
+            path, how = cand, "via" if k else "straight"
             break
     if path is None:
         path = _ompl_path(q0, q1, counted, lower, upper, cfg, seed)
@@ -137,6 +144,7 @@ def plan_transit(
         if not ok:
             raise PlanningFailed("the simplified path collides (planner resolution too coarse)")
     transit.checks = checks[0]
+    transit.how = how
     transit.planning_s = time.perf_counter() - t0
     return transit
 
@@ -224,6 +232,6 @@ def _ompl_plan(
     if not ss.haveExactSolutionPath():
         raise PlanningFailed(f"{cfg.planner} found no collision-free path in {cfg.timeout} s "
                              f"({solved})")  # fmt: skip
-    ss.simplifySolution(min(0.2, cfg.timeout))
+    ss.simplifySolution(min(SIMPLIFY_S, cfg.timeout))
     p = ss.getSolutionPath()
     return [np.array([p.getState(k)[i] for i in range(7)]) for k in range(p.getStateCount())]

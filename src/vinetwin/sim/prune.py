@@ -158,6 +158,7 @@ class _Job:
                                 vine=(self.V, self.F))  # fmt: skip
         self.contacts = _Contacts()
         self.track = Track()
+        self.transits: list[dict[str, Any]] = []
         self.rng = np.random.default_rng([cfg.seed, 45])
         base = SimConfig()
         from vinetwin.sim.field import registration_error
@@ -278,6 +279,7 @@ class _Job:
             "planning_s": planning,
             "reach_planning_s": plan.planning_s,
             "events": events,
+            "transits": self.transits,
             "summary": {
                 "poses": len(twin.poses),
                 "reachable": len(twin.poses) - len(plan.unreachable),
@@ -374,7 +376,12 @@ class _Job:
         E = make_pose(so3_exp(_direction(self.rng) * self.reg[1]),
                       _direction(self.rng) * self.reg[0])  # fmt: skip
         start = goal @ E
-        q_goal = arm.solve(invert(B) @ start, [r.q_pose], limit_margin=cfg.job.reach.limit_margin)
+        # the arm's IK for where it believes the pose is: near the planned joints, inside the
+        # plan's joint margin if it can be, else anywhere inside the limits
+        T = invert(B) @ start
+        q_goal = arm.solve(T, [r.q_pose], limit_margin=cfg.job.reach.limit_margin)
+        if q_goal is None:
+            q_goal = arm.solve(T, [r.q_pose], limit_margin=0.0, iterations=400)
         if q_goal is None:
             return _skipped(r.cut, r.pose, r.stop, "the believed pose is out of reach", cut), q, 0.0
         q = np.clip(q, arm.lower, arm.upper)  # a lagging arm may sit a hair past a limit
@@ -387,6 +394,8 @@ class _Job:
             return _skipped(r.cut, r.pose, r.stop, f"transit: {exc}", cut), q, 0.0
         phases["planning"] = tr.planning_s
         phases["transit"] = tr.duration
+        self.transits.append({"cut": r.cut, "how": tr.how, "planning_s": tr.planning_s,
+                              "duration_s": tr.duration, "waypoints": len(tr.waypoints)})  # fmt: skip
         self._run_transit(tr, "transit", r.cut)
         out, q_after = self._servo_and_cut(r, pose, goal, start, cut, q_goal, B, phases)
         return out, q_after, tr.planning_s
