@@ -68,6 +68,7 @@ class Collider:
         self.edge = float(edges.max())
         self.vt_starts, self.vt_tris, self.vedge = vertex_triangles(V, self.F)
         self.platform = platform
+        self._clearances: dict[tuple[int, float, float], Array] = {}
         self.at_stop(np.eye(4))
 
     def at_stop(self, T_vine_base: Array) -> None:
@@ -94,7 +95,10 @@ class Collider:
         sphere's radius, its clearance and what the surface between vertices can come
         closer)."""
         s = arm.spheres
-        clearance = np.where(s.frame == 8, hand, links)
+        key = (id(arm), links, hand)
+        clearance = self._clearances.get(key)
+        if clearance is None:
+            clearance = self._clearances[key] = np.where(s.frame == 8, hand, links)
         return bool(arm_valid(np.asarray(q, float), self.T_vine_base, s.frame, s.centre,
                               s.radius, clearance, self.bound, self.V, self.origin, GRID_CELL,
                               self.shape, self.starts, self.order, self.blocks, BLOCK,

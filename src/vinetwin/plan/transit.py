@@ -219,7 +219,14 @@ def _ompl_plan(
         bounds.setHigh(i, float(upper[i]))
     space.setBounds(bounds)
     ss = og.SimpleSetup(space)
-    ss.setStateValidityChecker(lambda s: valid(np.array([s[i] for i in range(7)])))
+    q = np.empty(7)
+
+    def check(s: Any) -> bool:
+        for i in range(7):
+            q[i] = s[i]
+        return valid(q.copy())
+
+    ss.setStateValidityChecker(check)
     si = ss.getSpaceInformation()
     # OMPL's resolution is a share of the space's extent; ours is a joint step
     si.setStateValidityCheckingResolution(cfg.resolution / si.getMaximumExtent())
