@@ -111,8 +111,9 @@ def collision_checks(root: Path, n: int = 12) -> dict[str, Any]:
     planner = Planner.for_twin(twin)
     plan = plan_vine(twin, planner)
     arm, col = planner.arm, planner.collider
-    import open3d as o3d
+    from vinetwin import _lazy
 
+    o3d = _lazy.open3d()
     m = twin.load_mesh()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)),

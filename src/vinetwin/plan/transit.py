@@ -126,7 +126,8 @@ def plan_transit(
             raise PlanningFailed(f"the transit's {name} configuration collides")
     path: list[Array] | None = None
     how = cfg.planner
-    for k, chain in enumerate([[], *(via or [])]):
+    chains: list[list[Array]] = [[], *(via or [])]
+    for k, chain in enumerate(chains):
         cand = [q0, *[np.asarray(w, float) for w in chain], q1]
         if all(counted(w) for w in cand[1:-1]) and all(
             _segment_ok(a, b, counted, cfg.resolution)[0] for a, b in itertools.pairwise(cand)
