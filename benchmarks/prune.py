@@ -33,6 +33,25 @@ from vinetwin.plan.proposer import propose
 from vinetwin.twin.model import Twin, bundled_sample
 
 PLANTS = ("sample", "dense", "gdc_can1", "vsp_ww")
+#: Vines whose field twin is captured around the pruning poses (`"twin_trajectory": "poses"`):
+#: the field profile's grid sweep at the D405's 30 cm misses the GDC's two curtains, 1.2 m apart
+#: (40 of its 60 frames see nothing within range), and every pose would be skipped by name.
+AROUND_POSES = ("gdc_can1",)
+
+
+def plant_profile(name: str, profile: str, work: Path) -> str:
+    """The profile a plant runs under: `profile`, or for a field run of a vine in
+    `AROUND_POSES` the same field profile with its twin captured around the poses."""
+    import json
+
+    from vinetwin.sim.config import load_profile
+
+    p = load_profile(profile)
+    if name not in AROUND_POSES or not p.on("twin") or p.twin_trajectory == "poses":
+        return profile
+    path = work / f"{Path(profile).stem}_around_poses.json"
+    path.write_text(json.dumps({**p.to_dict(), "twin_trajectory": "poses"}, indent=1))
+    return str(path)
 
 
 def plant_twin(name: str, work: Path) -> Path:
@@ -61,7 +80,8 @@ def run_vines(plants: list[str], seeds: list[int], sim: str, profile: str, work:
     for name in plants:
         root = plant_twin(name, work)
         for seed in seeds:
-            r = prune_twin(root, PruneConfig(sim=sim, profile=profile, seed=seed))  # type: ignore[arg-type]
+            cfg = PruneConfig(sim=sim, profile=plant_profile(name, profile, work), seed=seed)  # type: ignore[arg-type]
+            r = prune_twin(root, cfg)
             s = r["summary"]
             done = [c for c in r["cuts"] if c["status"] == "done"]
             errs = [1000 * c["blade_error_m"] for c in done]

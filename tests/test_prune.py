@@ -6,6 +6,7 @@ whichever executor ran it."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from vinetwin.errors import InputError
 from vinetwin.frames import make_pose
 from vinetwin.plan.job import Planner, plan_vine
 from vinetwin.plan.job_config import CutConfig, JobConfig, PlatformConfig, TransitConfig
-from vinetwin.plan.reach import GRID_CELL, Collider
+from vinetwin.plan.reach import Collider
 from vinetwin.plan.transit import PlanningFailed, plan_transit
 from vinetwin.twin.model import DEFAULT_T_FLANGE_CAMERA, DEFAULT_T_FLANGE_TOOL, Twin
 
@@ -102,11 +103,7 @@ def test_exact_distances_match_open3d_and_the_fast_check_is_conservative() -> No
     c = Collider(m.vertices, m.faces, PlatformConfig())
     rng = np.random.default_rng(1)
     P = m.vertices[rng.choice(len(m.vertices), 400)] + rng.normal(0, 0.01, (400, 3))
-    from vinetwin.plan._collide_kernels import closest_points
-
-    d, cp = np.empty(400), np.empty((400, 3))
-    closest_points(np.ascontiguousarray(P), 0.05, c.edge, c.V, c.F, c.origin, GRID_CELL,
-                   c.shape, c.starts, c.order, c.vt_starts, c.vt_tris, c.vedge, d, cp)  # fmt: skip
+    d, cp = c.closest(P, 0.05)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)),
                         o3d.core.Tensor(m.faces.astype(np.uint32)))  # fmt: skip
@@ -220,6 +217,30 @@ def test_no_poses_and_bad_settings_are_refused(tmp_path: Path, sample_twin_dir: 
         TransitConfig(planner="Teleport")  # type: ignore[arg-type]
     with pytest.raises(InputError, match="unknown sim"):
         PruneConfig(sim="gazebo")  # type: ignore[arg-type]
+
+
+def test_a_pose_its_field_twin_does_not_show_is_skipped_by_name(
+    tmp_path: Path, sample_twin_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Under the field profile the references come from a rebuilt twin; where it missed the
+    pose's part of the vine the cut is skipped before any motion, with the remedy named (as
+    `vinetwin validate` refuses it), instead of a servo that loses the vine."""
+    pytest.importorskip("ompl")
+    import trimesh
+
+    import vinetwin.sim.field as field_mod
+    from vinetwin.sim.prune import PruneConfig, prune_twin
+
+    twin = _twin_with(tmp_path, sample_twin_dir, ["p3"])
+    far = tmp_path / "far.ply"
+    trimesh.creation.box((0.2, 0.2, 0.01), make_pose(t=[5.0, 5.0, 5.0])).export(far)
+    monkeypatch.setattr(field_mod, "reconstructed_twin", lambda *a, **k: (far, {}))
+    out = prune_twin(twin.root, PruneConfig(sim="kinematic", profile="field"))
+    (c,) = out["cuts"]
+    assert c["status"] == "skipped"
+    assert re.search(r"reference: the field twin rebuilt .* 0% .* pose 'p3'.*twin_trajectory",
+                     c["reason"]), c["reason"]  # fmt: skip
+    assert out["summary"]["simulated_s"] < 20  # no servo ran: the drive, the stow
 
 
 def test_the_blade_is_judged_against_the_true_cut(tmp_path: Path, sample_twin_dir: Path) -> None:

@@ -30,28 +30,47 @@ def nearest_vertex(
     p: Array, reach: float, V: Array, origin: Array, cell: float, shape: Ints,
     starts: Ints, order: Ints,
 ) -> float:  # pragma: no cover - compiled  # fmt: skip
-    """Distance from p to the nearest vertex, if within `reach`; else `reach`."""
+    """Distance from p to the nearest vertex, if within `reach`; else `reach`. The cells are
+    visited in rings around p's cell (ring r: Chebyshev distance r in cells), and the search
+    ends once the next ring cannot hold a nearer vertex (every point of ring r lies at least
+    (r - 1) cells from p)."""
     best = reach * reach
-    lo = np.empty(3, np.int64)
+    c0 = np.empty(3, np.int64)
+    lo = np.empty(3, np.int64)  # the cells within reach
     hi = np.empty(3, np.int64)
     for a in range(3):
+        c0[a] = math.floor((p[a] - origin[a]) / cell)
         lo[a] = max(0, math.floor((p[a] - reach - origin[a]) / cell))
         hi[a] = min(shape[a] - 1, math.floor((p[a] + reach - origin[a]) / cell))
         if lo[a] > hi[a]:
             return reach
-    for i in range(lo[0], hi[0] + 1):
-        for j in range(lo[1], hi[1] + 1):
-            base = (i * shape[1] + j) * shape[2]
-            for k in range(lo[2], hi[2] + 1):
-                c = base + k
-                for m in range(starts[c], starts[c + 1]):
-                    v = order[m]
-                    dx = V[v, 0] - p[0]
-                    dy = V[v, 1] - p[1]
-                    dz = V[v, 2] - p[2]
-                    d2 = dx * dx + dy * dy + dz * dz
-                    if d2 < best:
-                        best = d2
+    rings = math.ceil(reach / cell) + 1
+    for r in range(rings + 1):
+        if r > 0 and ((r - 1) * cell) ** 2 >= best:
+            break
+        i0, i1 = max(lo[0], c0[0] - r), min(hi[0], c0[0] + r)
+        j0, j1 = max(lo[1], c0[1] - r), min(hi[1], c0[1] + r)
+        k0, k1 = max(lo[2], c0[2] - r), min(hi[2], c0[2] + r)
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                base = (i * shape[1] + j) * shape[2]
+                shell = abs(i - c0[0]) == r or abs(j - c0[1]) == r
+                k = k0
+                while k <= k1:
+                    if not shell and abs(k - c0[2]) != r:
+                        # inside the ring's cube: only its two faces in k belong to the ring
+                        k = c0[2] + r if c0[2] + r <= k1 else k1 + 1
+                        continue
+                    c = base + k
+                    for m in range(starts[c], starts[c + 1]):
+                        v = order[m]
+                        dx = V[v, 0] - p[0]
+                        dy = V[v, 1] - p[1]
+                        dz = V[v, 2] - p[2]
+                        d2 = dx * dx + dy * dy + dz * dz
+                        if d2 < best:
+                            best = d2
+                    k += 1
     return math.sqrt(best)
 
 
@@ -206,52 +225,33 @@ def _closest_on_triangle(p: Array, a: Array, b: Array, c: Array) -> Array:  # pr
 
 @nb.njit(cache=True)
 def closest_points(
-    P: Array, reach: float, edge: float, V: Array, F: Ints, origin: Array, cell: float,
-    shape: Ints, starts: Ints, order: Ints, vt_starts: Ints, vt_tris: Ints, vedge: Array,
-    dist: Array, closest: Array,
+    P: Array, near: Array, cand_starts: Ints, cand: Ints, V: Array, F: Ints,
+    vt_starts: Ints, vt_tris: Ints, vedge: Array, reach: float, dist: Array, closest: Array,
 ) -> None:  # pragma: no cover - compiled  # fmt: skip
     """For each point: its exact distance to the mesh and the nearest surface point, when that
-    is within `reach` (else dist = inf, closest NaN). The surface is no farther than the nearest
-    vertex (dv), and the nearest triangle has a corner within its distance + its longest edge
-    (`edge`): the triangles around the vertices within dv + edge are tried."""
+    is within `reach` (else dist = inf, closest NaN). near[n]: the distance to its nearest
+    vertex (a point of the surface: a first bound); cand[cand_starts[n]:cand_starts[n + 1]]:
+    the vertices within near[n] + the mesh's longest edge (the nearest triangle has a corner
+    there), whose triangles are tried."""
     for n in range(len(P)):
         p = P[n]
-        dv = nearest_vertex(p, reach + edge, V, origin, cell, shape, starts, order)
-        R = dv + edge
-        best = dv * dv + 1e-15  # the nearest vertex is a point of the surface: a first bound
+        best = near[n] * near[n] + 1e-15
         cx, cy, cz = np.nan, np.nan, np.nan
-        lo = np.empty(3, np.int64)
-        hi = np.empty(3, np.int64)
-        empty = False
-        for a in range(3):
-            lo[a] = max(0, math.floor((p[a] - R - origin[a]) / cell))
-            hi[a] = min(shape[a] - 1, math.floor((p[a] + R - origin[a]) / cell))
-            if lo[a] > hi[a]:
-                empty = True
-        if not empty:
-            for i in range(lo[0], hi[0] + 1):
-                for j in range(lo[1], hi[1] + 1):
-                    base = (i * shape[1] + j) * shape[2]
-                    for k in range(lo[2], hi[2] + 1):
-                        c = base + k
-                        for m in range(starts[c], starts[c + 1]):
-                            v = order[m]
-                            d = V[v] - p
-                            dd = d @ d
-                            if dd > R * R:
-                                continue
-                            # its triangles lie within its longest edge of it
-                            lim = math.sqrt(best) + vedge[v] if best < np.inf else R
-                            if dd > lim * lim:
-                                continue
-                            for t in vt_tris[vt_starts[v] : vt_starts[v + 1]]:
-                                q = _closest_on_triangle(p, V[F[t, 0]], V[F[t, 1]], V[F[t, 2]])
-                                e = q - p
-                                d2 = e @ e
-                                if d2 <= best:  # ties too: the nearest vertex may be it
-                                    best = d2
-                                    cx, cy, cz = q[0], q[1], q[2]
-        if best <= reach * reach:
+        for m in range(cand_starts[n], cand_starts[n + 1]):
+            v = cand[m]
+            d = V[v] - p
+            dd = d @ d
+            lim = math.sqrt(best) + vedge[v]  # its triangles lie within its longest edge of it
+            if dd > lim * lim:
+                continue
+            for t in vt_tris[vt_starts[v] : vt_starts[v + 1]]:
+                q = _closest_on_triangle(p, V[F[t, 0]], V[F[t, 1]], V[F[t, 2]])
+                e = q - p
+                d2 = e @ e
+                if d2 <= best:  # ties too: the nearest vertex may be it
+                    best = d2
+                    cx, cy, cz = q[0], q[1], q[2]
+        if best <= reach * reach and not math.isnan(cx):
             dist[n] = math.sqrt(best)
             closest[n, 0], closest[n, 1], closest[n, 2] = cx, cy, cz
         else:

@@ -69,6 +69,7 @@ class Collider:
         self.vt_starts, self.vt_tris, self.vedge = vertex_triangles(V, self.F)
         self.platform = platform
         self._clearances: dict[tuple[int, float, float], Array] = {}
+        self._tree: Any = None
         self.at_stop(np.eye(4))
 
     def at_stop(self, T_vine_base: Array) -> None:
@@ -104,6 +105,31 @@ class Collider:
                               self.shape, self.starts, self.order, self.blocks, BLOCK,
                               self.deck_lo, self.deck_hi))  # fmt: skip
 
+    def closest(self, P: Array, reach: float) -> tuple[Array, Array]:
+        """Each point's exact distance to the mesh and its nearest surface point, where that is
+        within `reach` (else inf and NaN): the nearest vertex and the vertices within it plus
+        the longest edge from a KD-tree (scipy's, built on first use), their triangles'
+        closest points compiled."""
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            self._tree = cKDTree(self.V)
+        P = np.ascontiguousarray(P, dtype=float).reshape(-1, 3)
+        dist, closest = np.full(len(P), np.inf), np.full((len(P), 3), np.nan)
+        dv, _ = self._tree.query(P, distance_upper_bound=reach + self.edge)
+        ok = np.isfinite(dv)
+        if not ok.any():
+            return dist, closest
+        lists = self._tree.query_ball_point(P[ok], dv[ok] + self.edge)
+        starts = np.zeros(int(ok.sum()) + 1, np.int64)
+        starts[1:] = np.cumsum([len(c) for c in lists])
+        cand = np.fromiter((v for c in lists for v in c), np.int64, count=int(starts[-1]))
+        d, c = np.empty(len(starts) - 1), np.empty((len(starts) - 1, 3))
+        closest_points(P[ok], np.asarray(dv[ok], float), starts, cand, self.V, self.F,
+                       self.vt_starts, self.vt_tris, self.vedge, reach, d, c)  # fmt: skip
+        dist[ok], closest[ok] = d, c
+        return dist, closest
+
     def clearance(
         self,
         centres_base: Array,
@@ -123,10 +149,7 @@ class Collider:
         near = g[:, 0] < need
         if near.any():
             Pn = np.ascontiguousarray(P[near])
-            dist, closest = np.empty(len(Pn)), np.empty((len(Pn), 3))
-            closest_points(Pn, float(radii[near].max()) + max(need, 0.0) + 1e-3, self.edge, self.V,
-                           self.F, self.origin, GRID_CELL, self.shape, self.starts, self.order,
-                           self.vt_starts, self.vt_tris, self.vedge, dist, closest)  # fmt: skip
+            dist, closest = self.closest(Pn, float(radii[near].max()) + max(need, 0.0) + 1e-3)
             exact = dist - radii[near]
             if exempt is not None:
                 cut, zone, mask = exempt

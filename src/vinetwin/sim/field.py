@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -139,6 +140,13 @@ def view_coverage(
 ) -> float:
     """The rebuilt mesh's valid depth pixels at the view over the true mesh's (Open3D ray
     casting at a quarter of the resolution; 1.0 when the true mesh shows nothing either)."""
+    return view_coverages(true_mesh, rebuilt_mesh, camera, [T_vine_camera])[0]
+
+
+def view_coverages(
+    true_mesh: Any, rebuilt_mesh: Any, camera: CameraModel, views: Sequence[Any]
+) -> list[float]:
+    """`view_coverage` at each of `views`, each mesh's ray caster built once."""
     from vinetwin.render.backends import raycaster
 
     small = camera.scaled(max(camera.width // 4, 1), max(camera.height // 4, 1))
@@ -146,10 +154,28 @@ def view_coverage(
     for m in (true_mesh, rebuilt_mesh):
         backend = raycaster(m.vertices, m.faces, small)
         try:
-            counts.append(int((backend.render(T_vine_camera) > 0).sum()))
+            counts.append([int((backend.render(np.asarray(T)) > 0).sum()) for T in views])
         finally:
             backend.close()
-    return 1.0 if counts[0] == 0 else counts[1] / counts[0]
+    return [1.0 if a == 0 else b / a for a, b in zip(*counts, strict=True)]
+
+
+def field_twin_view_problem(share: float, profile: FieldProfile, pose_id: str) -> str:
+    """Why a rebuilt twin showing `share` of the true vine at a pose cannot serve its
+    reference (with the remedy), or "" when it can."""
+    if share >= MIN_VIEW_COVERAGE:
+        return ""
+    hint = (
+        "capture around the pruning poses instead: --profile FILE, a JSON field profile with "
+        '"twin_trajectory": "poses"'
+        if profile.twin_trajectory == "grid"
+        else 'capture more frames: --profile FILE with a larger "twin_frames"'
+    )
+    return (
+        f"the field twin rebuilt from a {profile.twin_trajectory!r} capture shows "
+        f"{100 * share:.0f}% of what the true vine shows at pose {pose_id!r} (less than "
+        f"{100 * MIN_VIEW_COVERAGE:.0f}%): its reference would be empty; {hint}"
+    )
 
 
 def check_field_twin_view(
@@ -164,19 +190,9 @@ def check_field_twin_view(
     whole vine from one side can miss a large vine's poses): every run from it would otherwise
     stop "lost the vine" on an empty reference."""
     share = view_coverage(true_mesh, rebuilt_mesh, camera, T_vine_camera)
-    if share >= MIN_VIEW_COVERAGE:
-        return
-    hint = (
-        "capture around the pruning poses instead: --profile FILE, a JSON field profile with "
-        '"twin_trajectory": "poses"'
-        if profile.twin_trajectory == "grid"
-        else 'capture more frames: --profile FILE with a larger "twin_frames"'
-    )
-    raise VinetwinError(
-        f"the field twin rebuilt from a {profile.twin_trajectory!r} capture shows "
-        f"{100 * share:.0f}% of what the true vine shows at pose {pose_id!r} (less than "
-        f"{100 * MIN_VIEW_COVERAGE:.0f}%): its reference would be empty; {hint}"
-    )
+    problem = field_twin_view_problem(share, profile, pose_id)
+    if problem:
+        raise VinetwinError(problem)
 
 
 def reconstructed_twin(

@@ -2,7 +2,8 @@
 each platform stop, for each cut in order: a planned collision-free transit, the ICP-PBVS servo
 to the pruning pose (`sim.session.SimSpec`, the one place a simulated servo run is built), the
 cut (the tool moves straight in until the robot believes its blade is on the cut point, closes,
-and retreats along the same line), then the next cut.
+and retreats along the same line until the blade is out of the jaw zone and the arm passes the
+transit planner's clearance check), then the next cut.
 
 What the robot believes and what is true are kept apart:
 - the transit ends where the robot's belief puts the pruning pose; the true camera is off by the
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -54,7 +56,8 @@ BACKOFF = 0.1
 #: A straight move ends within this distance (m) of its end, as the robot reads it (above the
 #: encoders' noise).
 STRAIGHT_TOLERANCE = 5e-4
-#: The retreat ends within this distance (m) of its end: the next transit starts from there.
+#: The retreat ends within this distance (m) of the pruning pose at the latest (earlier once the
+#: arm is clear, `_retreat_clear`): the next transit starts from there.
 RETREAT_TOLERANCE = 0.005
 #: The straight move's proportional gain (1/s): slow enough for an arm that lags its command.
 STRAIGHT_GAIN = 8.0
@@ -125,7 +128,11 @@ class _Job:
 
     def __init__(self, twin: Twin, cfg: PruneConfig) -> None:
         from vinetwin.render.backends import raycaster, scene_backend
-        from vinetwin.sim.field import reconstructed_twin
+        from vinetwin.sim.field import (
+            field_twin_view_problem,
+            reconstructed_twin,
+            view_coverages,
+        )
 
         self.twin, self.cfg = twin, cfg
         self.profile = load_profile(cfg.profile)
@@ -139,6 +146,7 @@ class _Job:
         self.V, self.F = np.asarray(true.vertices), np.asarray(true.faces)
         robot_mesh = (self.V, self.F)
         self.reference_backend = None
+        self.unshown: dict[str, str] = {}  # pose -> why its reference cannot be made
         if self.profile.on("twin"):
             from vinetwin.mesh import load_mesh
 
@@ -146,6 +154,13 @@ class _Job:
             rm = load_mesh(path)
             robot_mesh = (np.asarray(rm.vertices), np.asarray(rm.faces))
             self.reference_backend = raycaster(rm.vertices, rm.faces, twin.camera)
+            # a pose the rebuilt twin missed is skipped by name, as `vinetwin validate` refuses
+            # it: its reference would be empty and the servo would lose the vine
+            shares = view_coverages(true, rm, twin.camera, [p.T_vine_camera for p in twin.poses])
+            for p, share in zip(twin.poses, shares, strict=True):
+                problem = field_twin_view_problem(share, self.profile, p.id)
+                if problem:
+                    self.unshown[p.id] = problem
         plan_mesh = robot_mesh if cfg.obstacles == "rebuilt" else (self.V, self.F)
         self.planner = Planner.for_twin(twin, cfg.job, mesh=plan_mesh)
         self.truth = Collider(self.V, self.F, cfg.job.platform)
@@ -372,6 +387,13 @@ class _Job:
         cut = np.asarray(twin.cut_point(pose.cut_point).point, float)
         arm = self.planner.arm
         phases: dict[str, float] = {}
+        if r.pose in self.unshown:
+            self.track.event(f"{r.cut} skipped: reference: {self.unshown[r.pose]}", 1)
+            return (
+                _skipped(r.cut, r.pose, r.stop, f"reference: {self.unshown[r.pose]}", cut),
+                q,
+                0.0,
+            )
         # where the robot's belief takes the camera: the pose, off by the registration error
         E = make_pose(so3_exp(_direction(self.rng) * self.reg[1]),
                       _direction(self.rng) * self.reg[0])  # fmt: skip
@@ -447,7 +469,7 @@ class _Job:
                 out["phases"] = phases
                 return out, self._joints(q, session)
             self.track.event(f"cut {r.cut}")
-            blade_error, phases_cut = self._cut_motion(session, cut, r.cut, start_clock, B)
+            blade_error, phases_cut = self._cut_motion(session, cut, r.cut, start_clock, B, q)
             phases.update(phases_cut)
             self.track.event(f"{r.cut} done: blade {1000 * blade_error:.2f} mm from the cut")
         finally:
@@ -470,7 +492,7 @@ class _Job:
         return q if qn is None else qn
 
     def _cut_motion(
-        self, session: Any, cut: Array, cut_id: str, clock0: float, B: Array
+        self, session: Any, cut: Array, cut_id: str, clock0: float, B: Array, q: Array
     ) -> tuple[float, dict[str, float]]:
         """Straight in until the robot believes the blade is on the cut, close, straight out.
         Returns the blade's true distance to the true cut point when it closed, and the
@@ -503,16 +525,43 @@ class _Job:
         # out along the same line, less precisely: the next transit starts wherever it ends
         self.track.event(f"retreat {cut_id}", t=clock0 + robot.t)
         self._straight(robot, -d, cc.approach_speed, cut, cut_id, "retreat", RETREAT_TOLERANCE,
-                       clock0, B)  # fmt: skip
+                       clock0, B, until=self._retreat_clear(session, q))  # fmt: skip
         self.track.clock = clock0 + robot.t
         return error, {"cut": t_in, "close": max(cc.close_time, CLOSE_SETTLE),
                        "retreat": robot.t - t1}  # fmt: skip
 
+    def _retreat_clear(self, session: Any, q_pose: Array) -> Callable[[float], bool]:
+        """Whether the retreat may end, given how far (m) it has gone: once the blade is past
+        the jaw zone and the arm's joints, as the robot reads them, pass the transit planner's
+        own check (its clearances on the planning mesh), the next transit takes over from
+        there at the arm's speed, planned and checked as every transit is."""
+        arm, planner = self.planner.arm, self.planner
+        least = planner.body.jaw_zone
+        last = [np.asarray(q_pose, float)]  # the free camera's IK seed: the pose's joints
+
+        def clear(moved: float) -> bool:
+            if moved < least:
+                return False
+            if self.arm is not None:
+                q = np.asarray(self.arm.q, float)
+            else:  # the free camera: the arm's joints for its reported pose
+                B = planner.collider.T_vine_base
+                q = arm.solve(invert(B) @ session.robot.T_base_camera(), [last[0]])
+                if q is None:
+                    return False
+                last[0] = q
+            inside = np.all(q >= arm.lower) and np.all(q <= arm.upper)
+            return bool(inside and planner.valid(q))
+
+        return clear
+
     def _straight(self, robot: Any, d: Array, speed: float, cut: Array, cut_id: str,
                   phase: str, tolerance: float = 0.0, clock0: float = 0.0,
-                  B: Array | None = None) -> None:  # fmt: skip
+                  B: Array | None = None,
+                  until: Callable[[float], bool] | None = None) -> None:  # fmt: skip
         """Moves the camera (as the robot believes it) by d in its own frame at `speed`:
-        a proportional Cartesian controller on the reported pose, as a robot's straight move."""
+        a proportional Cartesian controller on the reported pose, as a robot's straight move;
+        `until(distance moved)` may end it early."""
         C0 = robot.T_base_camera()
         length = float(np.linalg.norm(d))
         limit = 2.0 * length / speed + 2.0
@@ -524,6 +573,8 @@ class _Job:
             rest = M[:3, :3].T @ (d - M[:3, 3])  # what is left, in the camera frame now
             n = float(np.linalg.norm(rest))
             if n < max(tolerance, STRAIGHT_TOLERANCE):
+                break
+            if until is not None and until(float(np.linalg.norm(M[:3, 3]))):
                 break
             v = rest / n * min(speed, STRAIGHT_GAIN * n)
             w = STRAIGHT_GAIN * so3_log(M[:3, :3].T)  # hold the start's orientation
