@@ -121,9 +121,12 @@ def build_blocks(starts: Ints, shape: Ints, factor: int) -> Ints:
 
 @nb.njit(cache=True)
 def _any_vertex_within(
-    p: Array, R: float, V: Array, origin: Array, cell: float, shape: Ints, starts: Ints,
-    order: Ints, blocks: Ints, factor: int,
+    p: Array, R0: float, bound: float, vbound: Array, V: Array, origin: Array, cell: float,
+    shape: Ints, starts: Ints, order: Ints, blocks: Ints, factor: int,
 ) -> bool:  # pragma: no cover - compiled  # fmt: skip
+    """Whether a vertex v lies within R0 + vbound[v] of p (vbound <= bound: how much closer
+    than v the surface of v's triangles can come)."""
+    R = R0 + bound
     lo = np.empty(3, np.int64)
     hi = np.empty(3, np.int64)
     for a in range(3):
@@ -139,7 +142,6 @@ def _any_vertex_within(
                     occupied = True
     if not occupied:
         return False
-    R2 = R * R
     for i in range(lo[0], hi[0] + 1):
         for j in range(lo[1], hi[1] + 1):
             base = (i * shape[1] + j) * shape[2]
@@ -150,7 +152,8 @@ def _any_vertex_within(
                     dx = V[v, 0] - p[0]
                     dy = V[v, 1] - p[1]
                     dz = V[v, 2] - p[2]
-                    if dx * dx + dy * dy + dz * dz < R2:
+                    Rv = R0 + vbound[v]
+                    if dx * dx + dy * dy + dz * dz < Rv * Rv:
                         return True
     return False
 
@@ -158,11 +161,11 @@ def _any_vertex_within(
 @nb.njit(cache=True)
 def arm_valid(
     q: Array, T_vine_base: Array, frame: Ints, local: Array, radii: Array, clearance: Array,
-    bound: float, V: Array, origin: Array, cell: float, shape: Ints, starts: Ints,
-    order: Ints, blocks: Ints, factor: int, deck_lo: Array, deck_hi: Array,
+    bound: float, vbound: Array, V: Array, origin: Array, cell: float, shape: Ints,
+    starts: Ints, order: Ints, blocks: Ints, factor: int, deck_lo: Array, deck_hi: Array,
 ) -> bool:  # pragma: no cover - compiled  # fmt: skip
-    """Whether every sphere k at joints q keeps clearance[k] from the vine (no vertex within
-    radius + clearance + bound), the deck and the ground."""
+    """Whether every sphere k at joints q keeps clearance[k] from the vine (no vertex v within
+    radius + clearance + vbound[v]), the deck and the ground."""
     P = np.empty((len(radii), 3))
     arm_points(q, T_vine_base, frame, local, P)
     for k in range(len(radii)):
@@ -177,8 +180,8 @@ def arm_valid(
         if s < need * need:
             return False
     for k in range(len(radii)):  # the vine last: the dearest
-        if _any_vertex_within(P[k], radii[k] + clearance[k] + bound, V, origin, cell, shape,
-                              starts, order, blocks, factor):  # fmt: skip
+        if _any_vertex_within(P[k], radii[k] + clearance[k], bound, vbound, V, origin, cell,
+                              shape, starts, order, blocks, factor):  # fmt: skip
             return False
     return True
 

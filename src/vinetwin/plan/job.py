@@ -68,6 +68,11 @@ class Planner:
         `reach.clearance`, the hand (mount, camera, tool) by the body's margin."""
         return self.collider.arm_clear(self.arm, q, self.cfg.reach.clearance, self.body.margin)
 
+    def contact_free(self, q: Array) -> bool:
+        """Joints q clear of contact (the same conservative check, without the margins): how
+        a transit may leave or reach a configuration inside them (`transit.plan_transit`)."""
+        return self.collider.arm_clear(self.arm, q, 0.0, 0.0)
+
 
 def plan_vine(
     twin: Twin, planner: Planner, pose_ids: list[str] | None = None, seed: int = 0

@@ -67,6 +67,10 @@ class Collider:
         self.F = np.ascontiguousarray(F)
         self.edge = float(edges.max())
         self.vt_starts, self.vt_tris, self.vedge = vertex_triangles(V, self.F)
+        self.vbound = self.vedge / math.sqrt(3.0)
+        """Per vertex, how much closer than it the surface of its triangles can come (their
+        longest edge / sqrt(3)): a few long triangles (a digitised trunk's) then widen the
+        check only around themselves."""
         self.platform = platform
         self._clearances: dict[tuple[int, float, float], Array] = {}
         self._tree: Any = None
@@ -101,8 +105,8 @@ class Collider:
         if clearance is None:
             clearance = self._clearances[key] = np.where(s.frame == 8, hand, links)
         return bool(arm_valid(np.asarray(q, float), self.T_vine_base, s.frame, s.centre,
-                              s.radius, clearance, self.bound, self.V, self.origin, GRID_CELL,
-                              self.shape, self.starts, self.order, self.blocks, BLOCK,
+                              s.radius, clearance, self.bound, self.vbound, self.V, self.origin,
+                              GRID_CELL, self.shape, self.starts, self.order, self.blocks, BLOCK,
                               self.deck_lo, self.deck_hi))  # fmt: skip
 
     def closest(self, P: Array, reach: float) -> tuple[Array, Array]:

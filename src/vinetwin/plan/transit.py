@@ -56,6 +56,9 @@ class Transit:
         return ts, np.array([self.at(t) for t in ts])
 
 
+#: Joint-space distance (rad) from a transit's end within which, when that end lies inside the
+#: clearance margins, the path is judged by the contact check alone (`plan_transit`'s escape).
+ESCAPE = 0.2
 #: Time (s) OMPL's path simplifier may take (shortcuts and smoothing of a planner's path).
 SIMPLIFY_S = 0.05
 
@@ -107,24 +110,39 @@ def plan_transit(
     cfg: TransitConfig,
     seed: int = 0,
     via: list[list[Array]] | None = None,
+    escape: Callable[[Array], bool] | None = None,
 ) -> Transit:
     """A timed collision-free path from q0 to q1 (both must be valid). The straight segment is
     kept when it is free, else the first chain of `via` waypoints (backing off along the
     approach, for instance; each chain's waypoints alone tried before the whole chain) whose
     straight segments are free; else OMPL's `cfg.planner`
-    searches for `cfg.timeout` s and its path is simplified. Raises PlanningFailed with the
-    reason."""
+    searches for `cfg.timeout` s and its path is simplified. An end that fails `valid` (an arm
+    the servo's correction brought within a margin of a cane) is refused unless it passes
+    `escape` (a check without the margins: clear of contact); then the path may stay under the
+    margins, never in contact, within `ESCAPE` of that end, to leave it or to arrive. Raises
+    PlanningFailed with the reason."""
     t0 = time.perf_counter()
     q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
     checks = [0]
 
+    near: list[Array] = []  # ends inside the margins but clear of contact
+
     def counted(q: Array) -> bool:
         checks[0] += 1
-        return valid(q)
+        if valid(q):
+            return True
+        return (
+            bool(near)
+            and escape is not None
+            and any(float(np.linalg.norm(q - e)) <= ESCAPE for e in near)
+            and escape(q)
+        )
 
     for name, q in (("start", q0), ("goal", q1)):
-        if not counted(q):
-            raise PlanningFailed(f"the transit's {name} configuration collides")
+        if not valid(q):
+            if escape is None or not escape(q):
+                raise PlanningFailed(f"the transit's {name} configuration collides")
+            near.append(q)
     path: list[Array] | None = None
     how = cfg.planner
     # each chain's single waypoints first: a path that stops once instead of twice is quicker

@@ -34,7 +34,7 @@ from typing import Any, Literal
 import numpy as np
 
 from vinetwin._config import JsonFields
-from vinetwin.arm import STOW
+from vinetwin.arm import HOME, STOW
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, invert, make_pose, so3_exp, so3_log, transform_points
 from vinetwin.plan.job import Planner, plan_vine
@@ -271,7 +271,8 @@ class _Job:
             try:
                 tr = plan_transit(q, STOW, self.planner.valid, self.planner.arm.lower,
                                   self.planner.arm.upper, self._limits(), cfg.job.transit,
-                                  cfg.seed, self._via(q, STOW, B))  # fmt: skip
+                                  cfg.seed, self._via(q, STOW, B),
+                                  self.planner.contact_free)  # fmt: skip
                 planning += tr.planning_s
                 simulated += tr.duration
                 self._run_transit(tr, "stow", "")
@@ -358,12 +359,14 @@ class _Job:
 
     def _via(self, q0: Array, q1: Array, B: Array) -> list[list[Array]]:
         """Waypoint chains a transit tries before the planner: back off from the current pose
-        along its optical axis, and into the next along its own."""
+        along its optical axis, and into the next along its own; then out, through the arm's
+        ready pose (`HOME`) and in."""
         a, b = self._backed_off(q0), self._backed_off(q1)
         chains: list[list[Array]] = []
         for k in range(max(len(a), len(b))):
             chain = ([a[k]] if k < len(a) else []) + ([b[k]] if k < len(b) else [])
             chains.append(chain)
+        chains.append([*a[-1:], HOME, *b[-1:]])  # out, through the arm's ready pose, in
         return chains
 
     def _run_transit(self, tr: Any, phase: str, cut: str) -> None:
@@ -410,7 +413,8 @@ class _Job:
         via = self._via(q, q_goal, B)
         try:
             tr = plan_transit(q, q_goal, self.planner.valid, arm.lower, arm.upper,
-                              self._limits(), cfg.job.transit, cfg.seed, via)  # fmt: skip
+                              self._limits(), cfg.job.transit, cfg.seed, via,
+                              self.planner.contact_free)  # fmt: skip
         except PlanningFailed as exc:
             self.track.event(f"{r.cut} skipped: transit: {exc}", 1)
             return _skipped(r.cut, r.pose, r.stop, f"transit: {exc}", cut), q, 0.0
