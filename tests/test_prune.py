@@ -168,6 +168,50 @@ def test_a_transit_goes_around_a_cane_in_the_way() -> None:
                      (arm.vmax, arm.amax, arm.jmax), cfg)  # fmt: skip
 
 
+def test_a_transit_leaves_a_start_inside_the_margin_without_contact() -> None:
+    """An arm the servo brought within the links' 2 cm margin of a cane (8-12 mm off): the
+    transit is refused with the plain check, and with the contact check as its escape it leaves
+    the cane, every state on the way clear of contact and, past the escape's 0.2 rad, of the
+    margin too."""
+    pytest.importorskip("ompl")
+    pytest.importorskip("ruckig")
+    from vinetwin.plan.transit import ESCAPE
+
+    arm = _arm()
+    q0 = np.array([-0.9, 0.3, 0.0, -1.8, 0.0, 2.1, 0.785])
+    q1 = np.array([0.9, 0.3, 0.0, -1.8, 0.0, 2.1, 0.785])
+    s = arm.spheres
+    centre = arm.frames(q0)[4][:3, 3]  # a short upright cane beside the elbow, moved out
+    for dx in np.arange(0.05, 0.3, 0.002):  # until the nearest sphere is 8-12 mm from it
+        V, F = _tube([centre[0] + dx, centre[1], centre[2] - 0.15],
+                     [centre[0] + dx, centre[1], centre[2] + 0.15], 0.01)  # fmt: skip
+        c = Collider(V, F, PlatformConfig(offset=0.55, height=0.45))
+        gap, _, _ = c.clearance(arm.sphere_centres(q0), s.radius, need=0.05)
+        if gap > 0.008:
+            break
+    assert 0.008 < gap < 0.012
+    cfg = TransitConfig()
+
+    def valid(q: np.ndarray) -> bool:
+        return c.arm_clear(arm, q, 0.02, 0.005)
+
+    def contact_free(q: np.ndarray) -> bool:
+        return c.arm_clear(arm, q, 0.0, 0.0)
+
+    limits = (arm.vmax, arm.amax, arm.jmax)
+    assert not valid(q0) and contact_free(q0) and valid(q1)
+    with pytest.raises(PlanningFailed, match="start configuration collides"):
+        plan_transit(q0, q1, valid, arm.lower, arm.upper, limits, cfg)
+    tr = plan_transit(q0, q1, valid, arm.lower, arm.upper, limits, cfg, escape=contact_free)
+    _, qs = tr.samples(0.005)
+    assert np.allclose(qs[0], q0) and np.allclose(qs[-1], q1, atol=1e-9)
+    for q in qs:
+        gap, _, _ = c.clearance(arm.sphere_centres(q), s.radius, need=0.0)
+        assert gap >= 0.0
+        if np.linalg.norm(q - q0) > ESCAPE + 0.02:
+            assert valid(q)
+
+
 def _twin_with(tmp_path: Path, sample_twin_dir: Path, keep: list[str], name: str = "v.twin"):
     dst = tmp_path / name
     shutil.copytree(sample_twin_dir, dst,
