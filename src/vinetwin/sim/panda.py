@@ -42,6 +42,10 @@ def _wxyz(R: Array) -> list[float]:
     return [float(v) for v in quat_wxyz_from_matrix(R)]
 
 
+#: How fast (1/s) the null space pulls the joints toward a held posture (`PandaArm.posture`).
+POSTURE_GAIN = 2.0
+
+
 class PandaArm:
     """A Panda (vinetwin's or the Menagerie's) carrying the D405, in a MuJoCo scene with the vine."""
 
@@ -125,6 +129,10 @@ class PandaArm:
         self.site = m.site("d405").id
         self.damping = damping
         self.limit_avoidance = limit_avoidance
+        self.posture: Array | None = None
+        """Joints the redundant degree of freedom holds instead of avoiding the limits (the
+        pruning job's planned configuration at a pose, clear of the vine): a pull toward
+        them, `POSTURE_GAIN` per second, in the Jacobian's null space. None: limit avoidance."""
         self.amax = np.asarray(ACCELERATION_LIMITS)
         self._q_ref = np.zeros(7)
         self._qd_ref = np.zeros(7)
@@ -189,13 +197,17 @@ class PandaArm:
             if not (blocked & free).any():
                 break
             free &= ~blocked
-        if self.limit_avoidance > 0 and free.sum() > 6:
+        if (self.limit_avoidance > 0 or self.posture is not None) and free.sum() > 6:
             # the redundant degree of freedom keeps the joints off their limits: a push away from
             # each joint's nearer limit, growing as the cube of its normalised distance from the
-            # middle of its range, projected into the Jacobian's null space (no camera motion)
+            # middle of its range, projected into the Jacobian's null space (no camera motion);
+            # or, with a posture, a pull toward it (the elbow stays where a plan put it)
             Jf = J[:, free]
-            mid, half = (self.upper + self.lower) / 2, (self.upper - self.lower) / 2
-            push = -self.limit_avoidance * ((q - mid) / half) ** 3
+            if self.posture is not None:
+                push = -POSTURE_GAIN * (q - self.posture)
+            else:
+                mid, half = (self.upper + self.lower) / 2, (self.upper - self.lower) / 2
+                push = -self.limit_avoidance * ((q - mid) / half) ** 3
             N = np.eye(int(free.sum())) - np.linalg.pinv(Jf) @ Jf
             qdot[free] += N @ push[free]
         scale = float(np.max(np.abs(qdot) / self.vmax))

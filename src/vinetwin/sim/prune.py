@@ -442,6 +442,8 @@ class _Job:
         spec = SimSpec(goal, start, sim, pose.id, cut, reference_seed=int(pose_seed(cfg.seed, pose.id)),
                        robot="" if self.arm is not None else None,
                        arm_q=tuple(float(v) for v in q) if self.arm is not None else None)  # fmt: skip
+        if self.arm is not None:  # the servo, cut and retreat keep the planned elbow
+            self.arm.posture = np.asarray(q, float)
         world = SimWorld(self.backend, twin.perception, self.reference_backend, arm=self.arm,
                          T_flange_camera=twin.T_flange_camera)  # fmt: skip
         self.track.event(f"servo {r.cut}")
