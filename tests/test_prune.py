@@ -158,6 +158,15 @@ def test_a_transit_goes_around_a_cane_in_the_way() -> None:
         assert np.all(q >= arm.lower - 1e-9) and np.all(q <= arm.upper + 1e-9)
     v = np.diff(qs, axis=0) / 0.005
     assert np.all(np.abs(v) <= arm.vmax * cfg.speed_scale * 1.02)
+    # the arm follows the checked straight segments: every sample on the planned polyline
+    W = np.array(tr.waypoints)
+
+    def off(q: np.ndarray) -> float:
+        d = W[1:] - W[:-1]
+        t = np.clip(np.einsum("ij,ij->i", q - W[:-1], d) / np.einsum("ij,ij->i", d, d), 0, 1)
+        return float(np.min(np.linalg.norm(q - (W[:-1] + t[:, None] * d), axis=1)))
+
+    assert max(off(q) for q in qs) < 1e-9
     # the same seed plans the same path (a row's results do not depend on the worker)
     again = plan_transit(q0, q1, valid, arm.lower, arm.upper, (arm.vmax, arm.amax, arm.jmax),
                          cfg, seed=1)  # fmt: skip

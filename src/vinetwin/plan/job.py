@@ -34,6 +34,9 @@ FAR_SIDE = 0.1
 #: Stops tried per pose, nearest first, stop once this many reach it (the set cover rarely
 #: needs more choice than that, and the stops beyond cost most: their IK fails).
 MAX_STOPS_PER_POSE = 5
+#: The clearance (m) a transit keeps, links and hand, where it leaves or reaches an end inside
+#: the margins: more than half of what a sphere moves between two of its finer checks.
+ESCAPE_CLEARANCE = 0.002
 
 
 @dataclass
@@ -69,9 +72,10 @@ class Planner:
         return self.collider.arm_clear(self.arm, q, self.cfg.reach.clearance, self.body.margin)
 
     def contact_free(self, q: Array) -> bool:
-        """Joints q clear of contact (the same conservative check, without the margins): how
-        a transit may leave or reach a configuration inside them (`transit.plan_transit`)."""
-        return self.collider.arm_clear(self.arm, q, 0.0, 0.0)
+        """Joints q clear of the vine by `ESCAPE_CLEARANCE` (the same conservative check,
+        without the margins): how a transit may leave or reach a configuration inside them
+        (`transit.plan_transit`, which then checks its path five times as finely)."""
+        return self.collider.arm_clear(self.arm, q, ESCAPE_CLEARANCE, ESCAPE_CLEARANCE)
 
 
 def plan_vine(

@@ -1,9 +1,11 @@
 """Collision-free transits between two arm configurations: a joint-space path planned by OMPL
 (RRT-Connect by default, then OMPL's path simplifier) against a validity check the caller gives
 (`plan.reach.Collider.arm_clear`), each straight segment then timed by ruckig within the Panda's
-joint velocity, acceleration and jerk limits. Segments are timed rest to rest with ruckig's
-phase synchronisation, so the arm follows the checked straight segments exactly; the timed
-trajectory is checked again, densely, before it is returned."""
+joint velocity, acceleration and jerk limits. Segments are timed rest to rest by ruckig on
+each segment's path parameter, so the arm follows the checked straight segments exactly. A path is
+searched at the planner's resolution and kept once checked three times as finely (the hand's
+margin is less than a coarse step can move the tool); an OMPL path that fails that is planned
+again at the fine resolution."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ import itertools
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -33,7 +35,7 @@ class Transit:
     """Collision checks made in this process (the planner's own, in its child, not counted)."""
     how: str = ""
     """straight, via (backing off along the optical axes) or the OMPL planner's name."""
-    _trajectories: list[object] = field(default_factory=list, repr=False)
+    _trajectories: list[tuple[Any, Array, Array]] = field(default_factory=list, repr=False)
 
     @property
     def duration(self) -> float:
@@ -43,10 +45,11 @@ class Transit:
         """Joints at time t (s) from the start (clamped to the ends)."""
         if not self._trajectories:
             return np.asarray(self.waypoints[-1], float)
-        for traj, d in zip(self._trajectories, self.durations, strict=True):
-            if t <= d:
-                return np.asarray(traj.at_time(max(t, 0.0))[0], float)  # type: ignore[attr-defined]
-            t -= d
+        for (traj, a, d), dur in zip(self._trajectories, self.durations, strict=True):
+            if t <= dur:
+                s = float(traj.at_time(max(t, 0.0))[0][0])  # type: ignore[attr-defined]
+                return a + s * d
+            t -= dur
         return np.asarray(self.waypoints[-1], float)
 
     def samples(self, dt: float) -> tuple[Array, Array]:
@@ -59,6 +62,13 @@ class Transit:
 #: Joint-space distance (rad) from a transit's end within which, when that end lies inside the
 #: clearance margins, the path is judged by the contact check alone (`plan_transit`'s escape).
 ESCAPE = 0.2
+#: Within `ESCAPE` the path is checked this many times as finely: the escape's clearance
+#: (`plan.job.ESCAPE_CLEARANCE`) must cover what a sphere moves between two checks (a joint
+#: step of 0.002 rad moves the Panda's farthest sphere at most about 2.6 mm).
+ESCAPE_STEPS = 5
+#: A path found at the planner's resolution is kept once checked this many times as finely
+#: (a joint step of 0.0033 rad moves the tool at most about 4.3 mm, within the hand's margin).
+FINE_STEPS = 3
 #: Time (s) OMPL's path simplifier may take (shortcuts and smoothing of a planner's path).
 SIMPLIFY_S = 0.05
 
@@ -78,24 +88,31 @@ def _segment_ok(
 
 
 def time_path(waypoints: list[Array], vmax: Array, amax: Array, jmax: Array) -> Transit:
-    """Each segment timed rest to rest by ruckig (phase-synchronised: a straight line in joint
-    space)."""
+    """Each segment timed rest to rest by ruckig on its path parameter (0 to 1 along the
+    straight joint-space line, within each joint's velocity, acceleration and jerk limits
+    scaled to the segment), so the arm follows the checked straight segment exactly: ruckig's
+    own phase synchronisation of seven joints falls back to time synchronisation, off the
+    line, where a segment's profiles cannot be made alike (measured: 4 cm off, into a cane)."""
     ruckig = _lazy.module("ruckig", "the transit timing (pip install ruckig)")
     out = Transit([np.asarray(w, float) for w in waypoints])
-    otg = ruckig.Ruckig(7)
+    otg = ruckig.Ruckig(1)
     for a, b in itertools.pairwise(out.waypoints):
-        inp = ruckig.InputParameter(7)
-        inp.current_position = a.tolist()
-        inp.target_position = b.tolist()
-        inp.max_velocity = vmax.tolist()
-        inp.max_acceleration = amax.tolist()
-        inp.max_jerk = jmax.tolist()
-        inp.synchronization = ruckig.Synchronization.Phase
-        traj = ruckig.Trajectory(7)
+        d = b - a
+        moving = np.abs(d) > 1e-12
+        if not moving.any():
+            continue
+        scale = np.abs(d[moving])
+        inp = ruckig.InputParameter(1)
+        inp.current_position = [0.0]
+        inp.target_position = [1.0]
+        inp.max_velocity = [float(np.min(np.asarray(vmax)[moving] / scale))]
+        inp.max_acceleration = [float(np.min(np.asarray(amax)[moving] / scale))]
+        inp.max_jerk = [float(np.min(np.asarray(jmax)[moving] / scale))]
+        traj = ruckig.Trajectory(1)
         result = otg.calculate(inp, traj)
         if result not in (ruckig.Result.Working, ruckig.Result.Finished):
             raise PlanningFailed(f"ruckig could not time a segment ({result})")
-        out._trajectories.append(traj)
+        out._trajectories.append((traj, a, d))
         out.durations.append(float(traj.duration))
     return out
 
@@ -118,8 +135,9 @@ def plan_transit(
     straight segments are free; else OMPL's `cfg.planner`
     searches for `cfg.timeout` s and its path is simplified. An end that fails `valid` (an arm
     the servo's correction brought within a margin of a cane) is refused unless it passes
-    `escape` (a check without the margins: clear of contact); then the path may stay under the
-    margins, never in contact, within `ESCAPE` of that end, to leave it or to arrive. Raises
+    `escape` (a check with a small clearance instead of the margins); then the path may stay
+    under the margins, never closer than that, within `ESCAPE` of that end, to leave it or to
+    arrive, checked `ESCAPE_STEPS` times as finely. Raises
     PlanningFailed with the reason."""
     t0 = time.perf_counter()
     q0, q1 = np.asarray(q0, float), np.asarray(q1, float)
@@ -143,6 +161,15 @@ def plan_transit(
             if escape is None or not escape(q):
                 raise PlanningFailed(f"the transit's {name} configuration collides")
             near.append(q)
+    if near:  # under the margins the steps between checks must be short: a fifth of them
+        cfg = replace(cfg, resolution=cfg.resolution / ESCAPE_STEPS)
+    # a path is searched at the resolution, and kept only once checked FINE_STEPS times as
+    # finely: the hand's 5 mm margin is less than a 0.01 rad step can move the tool
+    fine = cfg.resolution if near else cfg.resolution / FINE_STEPS
+
+    def path_ok(cand: list[Array], resolution: float) -> bool:
+        return all(_segment_ok(a, b, counted, resolution)[0] for a, b in itertools.pairwise(cand))
+
     path: list[Array] | None = None
     how = cfg.planner
     # each chain's single waypoints first: a path that stops once instead of twice is quicker
@@ -152,21 +179,22 @@ def plan_transit(
         chains.append(chain)
     for k, chain in enumerate(chains):
         cand = [q0, *[np.asarray(w, float) for w in chain], q1]
-        if all(counted(w) for w in cand[1:-1]) and all(
-            _segment_ok(a, b, counted, cfg.resolution)[0] for a, b in itertools.pairwise(cand)
+        if (
+            all(counted(w) for w in cand[1:-1])
+            and path_ok(cand, cfg.resolution)
+            and path_ok(cand, fine)
         ):
             path, how = cand, "via" if k else "straight"
             break
     if path is None:
         path = _ompl_path(q0, q1, counted, lower, upper, cfg, seed)
+        if not path_ok(path, fine):  # planned again, checking as finely as it is judged
+            path = _ompl_path(q0, q1, counted, lower, upper, replace(cfg, resolution=fine), seed)
+            if not path_ok(path, fine):
+                raise PlanningFailed("the planned path collides between its checks")
     scale = cfg.speed_scale
     vmax, amax, jmax = limits
     transit = time_path(path, vmax * scale, amax * scale, jmax * scale)
-    # the timed trajectory, checked again at the resolution
-    for a, b in itertools.pairwise(path):
-        ok, _ = _segment_ok(a, b, counted, cfg.resolution)
-        if not ok:
-            raise PlanningFailed("the simplified path collides (planner resolution too coarse)")
     transit.checks = checks[0]
     transit.how = how
     transit.planning_s = time.perf_counter() - t0
