@@ -43,7 +43,7 @@ def _wxyz(R: Array) -> list[float]:
 
 
 #: How fast (1/s) the null space pulls the joints toward a held posture (`PandaArm.posture`).
-POSTURE_GAIN = 2.0
+POSTURE_GAIN = 0.5
 
 
 class PandaArm:
