@@ -227,3 +227,14 @@ def test_prune_benchmark_quick(tmp_path: Path) -> None:
     checks = data["collision_checks"]
     assert checks["vinetwin"]["median_transit_s"] > 0 and checks["open3d"]["check_us"] > 0
     assert data["inverse_kinematics"]["vinetwin"]["solved"] >= 35
+
+
+def test_prune_row_benchmark_quick(tmp_path: Path) -> None:
+    """`benchmarks/prune_row.py` on two generated vines (kinematic, ideal, no Ray): in process and
+    on the local pool, every vine's result the same."""
+    pytest.importorskip("ompl")
+    out = tmp_path / "row.json"
+    _, data = _quick("prune_row.py", out, "--vines", "2", "--cuts", "2", "--sim", "kinematic",
+                     "--no-ray", "--keep", str(tmp_path / "work"))  # fmt: skip
+    assert data["agree"] is True and len(data["per_vine"]) == 2
+    assert all(len(v) == 2 and all(v) for v in data["same"].values())
