@@ -71,7 +71,7 @@ class Planner:
         `reach.clearance`, the hand (mount, camera, tool) by the body's margin."""
         return self.collider.arm_clear(self.arm, q, self.cfg.reach.clearance, self.body.margin)
 
-    def contact_free(self, q: Array) -> bool:
+    def escape_clear(self, q: Array) -> bool:
         """Joints q clear of the vine by `ESCAPE_CLEARANCE` (the same conservative check,
         without the margins): how a transit may leave or reach a configuration inside them
         (`transit.plan_transit`, which then checks its path five times as finely)."""

@@ -272,7 +272,7 @@ class _Job:
                 tr = plan_transit(q, STOW, self.planner.valid, self.planner.arm.lower,
                                   self.planner.arm.upper, self._limits(), cfg.job.transit,
                                   cfg.seed, self._via(q, STOW, B),
-                                  self.planner.contact_free)  # fmt: skip
+                                  self.planner.escape_clear)  # fmt: skip
                 planning += tr.planning_s
                 simulated += tr.duration
                 self._run_transit(tr, "stow", "")
@@ -414,7 +414,7 @@ class _Job:
         try:
             tr = plan_transit(q, q_goal, self.planner.valid, arm.lower, arm.upper,
                               self._limits(), cfg.job.transit, cfg.seed, via,
-                              self.planner.contact_free)  # fmt: skip
+                              self.planner.escape_clear)  # fmt: skip
         except PlanningFailed as exc:
             self.track.event(f"{r.cut} skipped: transit: {exc}", 1)
             return _skipped(r.cut, r.pose, r.stop, f"transit: {exc}", cut), q, 0.0
