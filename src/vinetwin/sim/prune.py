@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -61,6 +61,8 @@ STRAIGHT_TOLERANCE = 5e-4
 RETREAT_TOLERANCE = 0.005
 #: The straight move's proportional gain (1/s): slow enough for an arm that lags its command.
 STRAIGHT_GAIN = 8.0
+#: A stow that finds no path is planned again with this many times the planner's time.
+STOW_RETRY = 5
 #: Control period (s) of the straight cut and retreat.
 CUT_DT = 1.0 / 30.0
 #: The arm's rest (s) between the end of the straight move and the blade's closing.
@@ -268,18 +270,15 @@ class _Job:
                 cuts.append(out)
             # the arm folds back for the platform's next drive; if it cannot, nothing moves on
             q = np.clip(q, self.planner.arm.lower, self.planner.arm.upper)
-            try:
-                tr = plan_transit(q, STOW, self.planner.valid, self.planner.arm.lower,
-                                  self.planner.arm.upper, self._limits(), cfg.job.transit,
-                                  cfg.seed, self._via(q, STOW, B),
-                                  self.planner.escape_clear)  # fmt: skip
-                planning += tr.planning_s
-                simulated += tr.duration
-                self._run_transit(tr, "stow", "")
-            except PlanningFailed as exc:
-                stopped = f"the arm could not fold back at stop {x:+.2f} m ({exc})"
+            tr, pl = self._stow(q, B)
+            planning += pl
+            if isinstance(tr, str):
+                stopped = f"the arm could not fold back at stop {x:+.2f} m ({tr})"
                 events.append(stopped)
                 self.track.event(f"stopped: {stopped}", 2)
+            else:
+                simulated += tr.duration
+                self._run_transit(tr, "stow", "")
         wall = time.perf_counter() - wall0
         done = [c for c in cuts if c["status"] == "done"]
         right = [c for c in done if c["blade_error_m"] <= cfg.job.cut.max_blade_error]
@@ -343,6 +342,31 @@ class _Job:
         bid = arm.model.body("vine").id
         arm.model.body_pos[bid] = T[:3, 3]
         arm.model.body_quat[bid] = quat_wxyz_from_matrix(T[:3, :3])
+
+    def _stow(self, q: Array, B: Array) -> tuple[Any, float]:
+        """The transit that folds the arm for the next drive, and the compute spent planning
+        it. Every later stop waits on it, so a planner that finds no path in its time is
+        given `STOW_RETRY` times as long, with another seed, before the job stops; the
+        reason when it still finds none."""
+        cfg, arm = self.cfg, self.planner.arm
+        t0 = time.perf_counter()
+        why = ""
+        for k, transit in enumerate(
+            (
+                cfg.job.transit,
+                replace(cfg.job.transit, timeout=STOW_RETRY * cfg.job.transit.timeout),
+            )
+        ):
+            try:
+                tr = plan_transit(q, STOW, self.planner.valid, arm.lower, arm.upper, self._limits(),
+                                  transit, cfg.seed + k, self._via(q, STOW, B),
+                                  self.planner.escape_clear)  # fmt: skip
+                return tr, time.perf_counter() - t0
+            except PlanningFailed as exc:
+                why = str(exc)
+                if "configuration collides" in why:
+                    break  # no time helps an end that collides
+        return why, time.perf_counter() - t0
 
     def _backed_off(self, q: Array) -> list[Array]:
         """Joints with the camera moved back along its optical axis, BACKOFF and twice that."""
