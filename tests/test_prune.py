@@ -270,6 +270,34 @@ def test_no_poses_and_bad_settings_are_refused(tmp_path: Path, sample_twin_dir: 
         TransitConfig(planner="Teleport")  # type: ignore[arg-type]
     with pytest.raises(InputError, match="unknown sim"):
         PruneConfig(sim="gazebo")  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="servo_gain"):
+        PruneConfig(servo_gain=50.0)  # past the envelope's largest gain
+    with pytest.raises(InputError, match="aim_window"):
+        CutConfig(aim_window=-0.1)
+
+
+def test_the_straight_profile_and_the_aim() -> None:
+    """The straight cut's trapezoid: it covers exactly its length, never passes the speed or the
+    acceleration, and its distance is the integral of its speed; a move too short for the speed
+    is a triangle. The aim is the mean of the window's believed cut points."""
+    from vinetwin.sim.straight import aimed_cut, straight_profile
+
+    for length, speed, accel in ((0.08, 0.05, 0.5), (0.002, 0.05, 0.5), (0.3, 0.05, 0.25)):
+        at, total = straight_profile(length, speed, accel)
+        assert total == pytest.approx(
+            length / speed + speed / accel if length >= speed**2 / accel
+            else 2 * np.sqrt(length / accel), rel=1e-9)  # fmt: skip
+        t = np.linspace(0.0, total + 0.1, 4001)
+        s, v = np.array([at(x) for x in t]).T
+        assert s[-1] == pytest.approx(length) and at(total + 1.0) == (pytest.approx(length), 0.0)
+        assert v.max() <= speed + 1e-12 and np.all(
+            np.abs(np.diff(v)) <= accel * (t[1] - t[0]) + 1e-9
+        )
+        assert np.allclose(np.diff(s), 0.5 * (v[1:] + v[:-1]) * np.diff(t), atol=1e-7)
+    assert straight_profile(0.0, 0.05, 0.5)[1] == 0.0
+    pts = [(0.1 * k, np.array([k, 0.0, 0.0])) for k in range(10)]
+    assert np.allclose(aimed_cut(pts, 0.35), [7.5, 0, 0])  # the last four frames: 6 to 9
+    assert np.allclose(aimed_cut(pts, 0.0), [9, 0, 0]) and aimed_cut([], 0.3) is None
 
 
 def test_a_pose_its_field_twin_does_not_show_is_skipped_by_name(

@@ -129,13 +129,17 @@ class CutConfig(JsonFields):
     faster setting is refused when the job runs."""
     close_time: float = 0.5
     """Time (s) the shears take to close and open."""
+    aim_window: float = 0.35
+    """The cut is aimed at the mean of where the servo's trusted frames of this last window (s)
+    put the cut point in the robot's base frame: it averages the alignment's noise and about one
+    period of a cane's sway (1-5 Hz in wind; `../shared/FIELD.md`). 0: the last frame alone."""
     max_blade_error: float = 0.005
     """A cut counts as done right when the blade closes within this distance (m) of the true
     cut point."""
 
     def __post_init__(self) -> None:
         _ranges(self, (("approach_speed", 0.005, 0.25), ("close_time", 0.0, 5.0),
-                       ("max_blade_error", 0.0005, 0.05)))  # fmt: skip
+                       ("aim_window", 0.0, 2.0), ("max_blade_error", 0.0005, 0.05)))  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)

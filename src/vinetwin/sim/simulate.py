@@ -72,6 +72,9 @@ class SimRun:
     cut_error: list[float] = field(default_factory=list)
     """Per frame: how far the cut point is, in the camera (the tool) frame, from where it is at
     the goal (m): what the pruning tool would miss it by."""
+    believed_cut: list[tuple[float, Array]] = field(default_factory=list)
+    """Per trusted frame: its stamp and where the robot believes the cut point is in its own
+    base frame (the frame's reported pose and the servo's alignment; what a cut is aimed by)."""
     reacquisitions: int = 0
     """Frames trusted by the wide search after a streak of refusals."""
     lost: str = ""
@@ -203,6 +206,9 @@ def simulate(
         u, v = run.cut_uv[-1]
         run.cut_outside += int(not (0 <= u < camera.width and 0 <= v < camera.height))
         run.trusted.append(r.trusted)
+        if r.trusted and r.T_ref_cur is not None and c.T_base_camera is not None:
+            seen = transform_points(invert(r.T_ref_cur), cut_at_goal[None])[0]
+            run.believed_cut.append((t, transform_points(c.T_base_camera, seen[None])[0]))
         run.compute.append(sum(r.timings.values()))
         if not r.trusted:
             key = r.reason.split(":")[0]
