@@ -107,9 +107,11 @@ def plan_vine(
     plan.platform = cfg.platform.to_dict()
     reach: dict[str, dict[float, CutReach]] = {}
     reasons: dict[str, dict[str, int]] = {}
+    where: dict[str, tuple[Array, Array]] = {}
     for pose in poses:
         cut = twin.cut_point(pose.cut_point).point
         T = np.asarray(pose.T_vine_camera, float)
+        where[pose.id] = (T, cut)
         stops = candidate_stops([float(cut[0])], cfg)
         stops.sort(key=lambda s: abs(s - float(T[0, 3])))
         found: dict[float, CutReach] = {}
@@ -123,20 +125,49 @@ def plan_vine(
             plan.tried += 1
             r = reach_cut(
                 planner.arm, planner.collider, T, cut, T_vine_base, cfg, planner.body.margin,
-                planner.body.jaw_zone, warm, rng,
+                planner.body.jaw_zone, warm, rng, approach=False,
             )  # fmt: skip
             if isinstance(r, str):
                 why[r] = why.get(r, 0) + 1
                 continue
-            q_pose, q_cut, manip, gap = r
-            warm = [q_pose]
-            found[s] = CutReach(pose.cut_point, pose.id, s, q_pose, q_cut, manip, gap)
+            warm = [r[0]]
+            found[s] = CutReach(pose.cut_point, pose.id, s, *r)
         reach[pose.id] = found
         reasons[pose.id] = why
+    # the straight approach is checked only where the cover uses a stop (the pose's own checks
+    # decide nearly every stop): one that fails drops that stop for the pose, and the cover is
+    # made again
+    checked: set[tuple[str, float]] = set()
+    while True:
+        plan.stops = choose_stops(reach)
+        dropped = False
+        for pid, by_stop in reach.items():
+            here = [s for s in plan.stops if s in by_stop]
+            if not here:
+                continue
+            best = max(here, key=lambda s: by_stop[s].manipulability)
+            if (pid, best) in checked:
+                continue
+            checked.add((pid, best))
+            T_vine_base = stop_pose(best, cfg.platform)
+            planner.collider.at_stop(T_vine_base)
+            r = reach_cut(
+                planner.arm, planner.collider, *where[pid], T_vine_base, cfg,
+                planner.body.margin, planner.body.jaw_zone, [by_stop[best].q_pose], rng,
+            )  # fmt: skip
+            if isinstance(r, str):
+                reasons[pid][r] = reasons[pid].get(r, 0) + 1
+                del by_stop[best]
+                dropped = True
+            else:
+                by_stop[best] = CutReach(by_stop[best].cut, pid, best, *r)
+        if not dropped:
+            break
+    for pid, found in reach.items():
         if not found:
+            why = reasons[pid]
             common = max(why, key=lambda k: why[k]) if why else "no stop within reach"
-            plan.unreachable[pose.id] = f"no platform stop reaches it ({common})"
-    plan.stops = choose_stops(reach)
+            plan.unreachable[pid] = f"no platform stop reaches it ({common})"
     for s in plan.stops:
         plan.order[s] = []
     for by_stop in reach.values():

@@ -225,12 +225,14 @@ def reach_cut(
     warm: list[Array],
     rng: np.random.Generator,
     prefer: Array | None = None,
+    approach: bool = True,
 ) -> tuple[Array, Array, float, float] | str:
     """(q at the pose, q with the blade on the cut, manipulability, clearance) from the base at
     T_vine_base, or the reason it cannot. Of the inverse kinematics solutions the `warm` seeds
     reach, then (if none of those serves) those `HOME` and random seeds reach, the one nearest
     `prefer` (default: the first warm seed, else `STOW`) in joint time whose approach is clear
-    is taken."""
+    is taken. Without `approach` only the pose is checked (the joints at the cut are then those
+    at the pose; `plan_vine` checks the approach where it uses the stop)."""
     rc = cfg.reach
     T_base_vine = invert(T_vine_base)
     T_pose = T_base_vine @ np.asarray(T_vine_camera, float)
@@ -247,7 +249,8 @@ def reach_cut(
         found.sort(key=lambda q: joint_time(ref, q, arm.vmax))
         for q in found:
             tried += 1
-            got = _approach(arm, collider, T_pose, cut, cut_base, q, cfg, margin, jaw_zone)
+            got = _approach(arm, collider, T_pose, cut, cut_base, q, cfg, margin, jaw_zone,
+                            approach)  # fmt: skip
             if not isinstance(got, str):
                 return got
             why = why or got
@@ -258,10 +261,24 @@ def reach_cut(
 
 def _approach(
     arm: ArmModel, collider: Collider, T_pose: Array, cut: Array, cut_base: Array, q: Array,
-    cfg: JobConfig, margin: float, jaw_zone: float,
+    cfg: JobConfig, margin: float, jaw_zone: float, along: bool = True,
 ) -> tuple[Array, Array, float, float] | str:  # fmt: skip
-    """The straight approach from joints q at the pose: reachable step by step, clear."""
+    """The straight approach from joints q at the pose: clear at the pose (the cheap checks
+    first), then (`along`) reachable step by step, and clear along the way (its steps'
+    spheres queried at once)."""
     rc = cfg.reach
+    s = arm.spheres
+    if not collider.arm_clear(arm, q, rc.clearance, margin):
+        return (
+            f"the arm's links come within {1000 * rc.clearance:.0f} mm of an obstacle at the pose"
+        )
+    worst, i, what = collider.clearance(arm.sphere_centres(q), s.radius, None, need=margin)
+    if worst < margin:
+        return (
+            f"the {s.part[i]} comes within {1000 * max(worst, 0):.0f} mm of the {what} at the pose"
+        )
+    if not along:
+        return q, q, arm.manipulability(q), worst
     travel = cut_base - arm.blade(q)
     qs = [q]
     for k in range(1, rc.approach_steps + 1):
@@ -270,21 +287,16 @@ def _approach(
         if qk is None or np.max(np.abs(qk - qs[-1])) > MAX_JOINT_JUMP:
             return f"the straight approach leaves the arm's reach {k}/{rc.approach_steps} of the way in"
         qs.append(qk)
-    s = arm.spheres
-    tool = np.array([p == "tool" for p in s.part])
-    worst = math.inf
-    if not collider.arm_clear(arm, q, rc.clearance, margin):
-        return (
-            f"the arm's links come within {1000 * rc.clearance:.0f} mm of an obstacle at the pose"
-        )
-    for k, qk in enumerate(qs):
-        exempt = (np.asarray(cut, float), jaw_zone, tool) if k > 0 else None
-        gap, i, what = collider.clearance(arm.sphere_centres(qk), s.radius, exempt, need=margin)
-        worst = min(worst, gap)
-        if gap < margin:
-            where = "at the pose" if k == 0 else f"{k}/{rc.approach_steps} of the way in"
-            return f"the {s.part[i]} comes within {1000 * max(gap, 0):.0f} mm of the {what} {where}"
-    return q, qs[-1], arm.manipulability(q), worst
+    n = len(s.radius)
+    tool = np.tile(np.array([p == "tool" for p in s.part]), len(qs) - 1)
+    centres = np.concatenate([arm.sphere_centres(qk) for qk in qs[1:]])
+    gap, j, what = collider.clearance(centres, np.tile(s.radius, len(qs) - 1),
+                                      (np.asarray(cut, float), jaw_zone, tool), need=margin)  # fmt: skip
+    if gap < margin:
+        k, i = j // n + 1, j % n
+        return (f"the {s.part[i]} comes within {1000 * max(gap, 0):.0f} mm of the {what} "
+                f"{k}/{rc.approach_steps} of the way in")  # fmt: skip
+    return q, qs[-1], arm.manipulability(q), min(worst, gap)
 
 
 def candidate_stops(cut_xs: list[float], cfg: JobConfig) -> list[float]:
