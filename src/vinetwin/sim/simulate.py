@@ -206,7 +206,12 @@ def simulate(
         u, v = run.cut_uv[-1]
         run.cut_outside += int(not (0 <= u < camera.width and 0 <= v < camera.height))
         run.trusted.append(r.trusted)
-        if r.trusted and r.T_ref_cur is not None and c.T_base_camera is not None:
+        if (
+            r.trusted
+            and r.T_ref_cur is not None
+            and c.T_base_camera is not None
+            and cut_at_goal is not None
+        ):
             seen = transform_points(invert(r.T_ref_cur), cut_at_goal[None])[0]
             run.believed_cut.append((t, transform_points(c.T_base_camera, seen[None])[0]))
         run.compute.append(sum(r.timings.values()))
