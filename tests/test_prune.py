@@ -125,6 +125,17 @@ def test_exact_distances_match_open3d_and_the_fast_check_is_conservative() -> No
             gap, _, _ = c.clearance(arm.sphere_centres(q), arm.spheres.radius, need=0.05)
             assert gap >= 0.01 - 1e-9
     assert said_clear > 20
+    # the free-space grid that spares the search is a lower bound of the distance to a vertex
+    from scipy.spatial import cKDTree
+
+    from vinetwin.plan.reach import FREE_CELL
+
+    lo, hi = c.origin, c.origin + np.asarray(c.free.shape) * FREE_CELL
+    Q = rng.uniform(lo, hi, (20000, 3))
+    near, _ = cKDTree(m.vertices).query(Q)
+    cells = np.floor((Q - lo) / FREE_CELL).astype(int)
+    free = c.free[cells[:, 0], cells[:, 1], cells[:, 2]]
+    assert np.all(free <= near) and (free > 0.03).mean() > 0.2
 
 
 def test_a_transit_goes_around_a_cane_in_the_way() -> None:

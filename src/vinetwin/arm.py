@@ -72,26 +72,36 @@ _MOUNT = (0.025, 0.04)
 
 @nb.njit(cache=True)
 def _frames(q: Array, out: Array) -> None:  # pragma: no cover - compiled
-    """out[0] the base, out[1..7] the links, out[8] the flange, as 4x4 poses in the base."""
-    T = np.eye(4)
-    out[0] = T
+    """out[0] the base, out[1..7] the links, out[8] the flange, as 4x4 poses in the base. Each
+    link's transform (modified DH: Rx(alpha) Tx(a) Rz(theta) Tz(d)) is multiplied in by hand,
+    in place: a small matrix product through BLAS, and an array per link, would cost more than
+    the arithmetic (the planner's check runs this for every configuration)."""
+    out[0] = 0.0
+    for k in range(4):
+        out[0, k, k] = 1.0
     for i in range(7):
         a, d, al = DH[i, 0], DH[i, 1], DH[i, 2]
         ca, sa = math.cos(al), math.sin(al)
         ct, st = math.cos(q[i]), math.sin(q[i])
-        A = np.array(
-            [
-                [ct, -st, 0.0, a],
-                [st * ca, ct * ca, -sa, -d * sa],
-                [st * sa, ct * sa, ca, d * ca],
-                [0.0, 0.0, 0.0, 1.0],
-            ]
-        )
-        T = T @ A
-        out[i + 1] = T
-    F = np.eye(4)
-    F[2, 3] = FLANGE_OFFSET
-    out[8] = T @ F
+        P = out[i]
+        N = out[i + 1]
+        for r in range(3):
+            x, y, z = P[r, 0], P[r, 1], P[r, 2]
+            # the columns of A: (ct, st ca, st sa), (-st, ct ca, ct sa), (0, -sa, ca), (a, -d sa, d ca)
+            N[r, 0] = x * ct + y * st * ca + z * st * sa
+            N[r, 1] = -x * st + y * ct * ca + z * ct * sa
+            N[r, 2] = -y * sa + z * ca
+            N[r, 3] = x * a - y * d * sa + z * d * ca + P[r, 3]
+        N[3, 0] = 0.0
+        N[3, 1] = 0.0
+        N[3, 2] = 0.0
+        N[3, 3] = 1.0
+    T = out[7]
+    F = out[8]
+    for r in range(4):
+        for c in range(3):
+            F[r, c] = T[r, c]
+        F[r, 3] = T[r, 2] * FLANGE_OFFSET + T[r, 3]
 
 
 @nb.njit(cache=True)

@@ -100,14 +100,14 @@ def arm_points(
     """points[k]: the centre of sphere k (on frame[k] at local[k]) in the vine frame."""
     F = np.empty((9, 4, 4))
     _frames(q, F)
-    for f in range(9):
-        F[f] = T_vine_base @ F[f]
+    B = T_vine_base
     for k in range(len(frame)):
         M = F[frame[k]]
-        for a in range(3):
-            points[k, a] = (
-                M[a, 0] * local[k, 0] + M[a, 1] * local[k, 1] + M[a, 2] * local[k, 2] + M[a, 3]
-            )
+        x = M[0, 0] * local[k, 0] + M[0, 1] * local[k, 1] + M[0, 2] * local[k, 2] + M[0, 3]
+        y = M[1, 0] * local[k, 0] + M[1, 1] * local[k, 1] + M[1, 2] * local[k, 2] + M[1, 3]
+        z = M[2, 0] * local[k, 0] + M[2, 1] * local[k, 1] + M[2, 2] * local[k, 2] + M[2, 3]
+        for a in range(3):  # into the vine frame (a product per point, not per frame)
+            points[k, a] = B[a, 0] * x + B[a, 1] * y + B[a, 2] * z + B[a, 3]
 
 
 def build_blocks(starts: Ints, shape: Ints, factor: int) -> Ints:
@@ -119,33 +119,59 @@ def build_blocks(starts: Ints, shape: Ints, factor: int) -> Ints:
     return np.asarray(c.reshape(bs[0], factor, bs[1], factor, bs[2], factor).any(axis=(1, 3, 5)))
 
 
-@nb.njit(cache=True)
+def build_free(V: Array, origin: Array, size: Array, cell: float) -> Array:
+    """A grid of `cell` over the box from `origin` of `size` (m): per cell, a lower bound of the
+    distance (m) from any point in it to any vertex. The Euclidean distance transform of the
+    cells holding a vertex (centre to centre), less a cell's diagonal (each point lies within
+    half of it of its cell's centre), at least 0; float32 (the bound is rounded down)."""
+    from scipy.ndimage import distance_transform_edt
+
+    shape = np.ceil(np.asarray(size, float) / cell).astype(np.int64)
+    idx = np.clip(np.floor((V - origin) / cell).astype(np.int64), 0, shape - 1)
+    occupied = np.zeros(tuple(shape), bool)
+    occupied[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    edt = np.asarray(distance_transform_edt(~occupied), float)
+    free = np.maximum(edt - math.sqrt(3.0), 0.0) * cell
+    return np.ascontiguousarray(np.nextafter(free.astype(np.float32), np.float32(0)))
+
+
+@nb.njit(cache=True, inline="always")
 def _any_vertex_within(
     p: Array, R0: float, bound: float, vbound: Array, V: Array, origin: Array, cell: float,
-    shape: Ints, starts: Ints, order: Ints, blocks: Ints, factor: int,
+    shape: Ints, starts: Ints, order: Ints, blocks: Ints, factor: int, free: Array,
+    fcell: float,
 ) -> bool:  # pragma: no cover - compiled  # fmt: skip
     """Whether a vertex v lies within R0 + vbound[v] of p (vbound <= bound: how much closer
-    than v the surface of v's triangles can come)."""
+    than v the surface of v's triangles can come). A point whose cell of `free` (`fcell`
+    across, from `origin`; `build_free`) is at least R0 + bound from every vertex is answered
+    at once, without visiting one."""
     R = R0 + bound
-    lo = np.empty(3, np.int64)
-    hi = np.empty(3, np.int64)
-    for a in range(3):
-        lo[a] = max(0, math.floor((p[a] - R - origin[a]) / cell))
-        hi[a] = min(shape[a] - 1, math.floor((p[a] + R - origin[a]) / cell))
-        if lo[a] > hi[a]:
-            return False
+    # scalars, not arrays: this runs for every sphere of every check (an allocation each
+    # would cost more than the test)
+    x, y, z = p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]
+    ci, cj, ck = math.floor(x / fcell), math.floor(y / fcell), math.floor(z / fcell)
+    if (
+        0 <= ci < free.shape[0] and 0 <= cj < free.shape[1] and 0 <= ck < free.shape[2]
+        and free[ci, cj, ck] >= R
+    ):  # fmt: skip
+        return False
+    i0, i1 = max(0, math.floor((x - R) / cell)), min(shape[0] - 1, math.floor((x + R) / cell))
+    j0, j1 = max(0, math.floor((y - R) / cell)), min(shape[1] - 1, math.floor((y + R) / cell))
+    k0, k1 = max(0, math.floor((z - R) / cell)), min(shape[2] - 1, math.floor((z + R) / cell))
+    if i0 > i1 or j0 > j1 or k0 > k1:
+        return False
     occupied = False  # the coarse blocks first
-    for bi in range(lo[0] // factor, hi[0] // factor + 1):
-        for bj in range(lo[1] // factor, hi[1] // factor + 1):
-            for bk in range(lo[2] // factor, hi[2] // factor + 1):
+    for bi in range(i0 // factor, i1 // factor + 1):
+        for bj in range(j0 // factor, j1 // factor + 1):
+            for bk in range(k0 // factor, k1 // factor + 1):
                 if blocks[bi, bj, bk]:
                     occupied = True
     if not occupied:
         return False
-    for i in range(lo[0], hi[0] + 1):
-        for j in range(lo[1], hi[1] + 1):
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
             base = (i * shape[1] + j) * shape[2]
-            for k in range(lo[2], hi[2] + 1):
+            for k in range(k0, k1 + 1):
                 c = base + k
                 for m in range(starts[c], starts[c + 1]):
                     v = order[m]
@@ -162,7 +188,8 @@ def _any_vertex_within(
 def arm_valid(
     q: Array, T_vine_base: Array, frame: Ints, local: Array, radii: Array, clearance: Array,
     bound: float, vbound: Array, V: Array, origin: Array, cell: float, shape: Ints,
-    starts: Ints, order: Ints, blocks: Ints, factor: int, deck_lo: Array, deck_hi: Array,
+    starts: Ints, order: Ints, blocks: Ints, factor: int, free: Array, fcell: float,
+    deck_lo: Array, deck_hi: Array,
 ) -> bool:  # pragma: no cover - compiled  # fmt: skip
     """Whether every sphere k at joints q keeps clearance[k] from the vine (no vertex v within
     radius + clearance + vbound[v]), the deck and the ground."""
@@ -181,7 +208,7 @@ def arm_valid(
             return False
     for k in range(len(radii)):  # the vine last: the dearest
         if _any_vertex_within(P[k], radii[k] + clearance[k], bound, vbound, V, origin, cell,
-                              shape, starts, order, blocks, factor):  # fmt: skip
+                              shape, starts, order, blocks, factor, free, fcell):  # fmt: skip
             return False
     return True
 

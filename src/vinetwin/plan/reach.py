@@ -24,6 +24,7 @@ from vinetwin.frames import Array, invert, make_pose, transform_points
 from vinetwin.plan._collide_kernels import (
     arm_valid,
     build_blocks,
+    build_free,
     build_hash,
     closest_points,
     point_gaps,
@@ -36,6 +37,8 @@ MAX_JOINT_JUMP = 0.3
 #: The spatial hash's cell (m), and its blocks (cells per side) that skip empty space.
 GRID_CELL = 0.02
 BLOCK = 4
+#: The free-space grid's cell (m): a sphere that far from every vertex needs no search.
+FREE_CELL = 0.01
 #: Spheres nearer the vine than this (m) get the exact distance.
 NEAR = 0.02
 
@@ -64,6 +67,7 @@ class Collider:
         self.shape = np.ceil((V.max(0) - self.origin) / GRID_CELL).astype(np.int64) + 2
         self.starts, self.order = build_hash(V, self.origin, GRID_CELL, self.shape)
         self.blocks = build_blocks(self.starts, self.shape, BLOCK)
+        self.free = build_free(V, self.origin, self.shape * GRID_CELL, FREE_CELL)
         self.F = np.ascontiguousarray(F)
         self.edge = float(edges.max())
         self.vt_starts, self.vt_tris, self.vedge = vertex_triangles(V, self.F)
@@ -106,7 +110,7 @@ class Collider:
             clearance = self._clearances[key] = np.where(s.frame == 8, hand, links)
         return bool(arm_valid(np.asarray(q, float), self.T_vine_base, s.frame, s.centre,
                               s.radius, clearance, self.bound, self.vbound, self.V, self.origin,
-                              GRID_CELL, self.shape, self.starts, self.order, self.blocks, BLOCK,
+                              GRID_CELL, self.shape, self.starts, self.order, self.blocks, BLOCK, self.free, FREE_CELL,
                               self.deck_lo, self.deck_hi))  # fmt: skip
 
     def closest(self, P: Array, reach: float) -> tuple[Array, Array]:
