@@ -286,6 +286,22 @@ def capture_meta(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     return {"root": str(root), "meta": json.loads((root / "capture.json").read_text())}
 
 
+def test_a_frame_path_too_long_for_the_file_system_is_named(capture_meta: dict[str, Any]) -> None:
+    """Found by the fuzz below: a depth name of 5000 characters made `Path.exists` raise
+    OSError (ENAMETOOLONG) instead of naming the frame."""
+    from vinetwin.capture.folder import CaptureError, read_capture
+
+    root = Path(capture_meta["root"])
+    meta = json.loads(json.dumps(capture_meta["meta"]))
+    meta["frames"][0]["depth"] = "x" * 5000
+    (root / "capture.json").write_text(json.dumps(meta))
+    try:
+        with pytest.raises(CaptureError, match=r"frame 000000: depth: .* not a usable path"):
+            read_capture(root, check_frames=True)
+    finally:
+        (root / "capture.json").write_text(json.dumps(capture_meta["meta"]))
+
+
 @FUZZ
 @given(data=st.data())
 def test_a_mutated_capture_json_reads_or_is_named(

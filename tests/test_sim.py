@@ -187,6 +187,53 @@ def test_validate_writes_the_map_and_resumes(sample_twin_dir: Path, tmp_path: Pa
     assert (root / "validation" / "p1.symmetric.json").stat().st_mtime_ns != mtime
 
 
+def test_validate_against_a_world_counts_the_twins_own_error(
+    sample_twin_dir: Path, tmp_path: Path
+) -> None:
+    """`world`: the camera sees another mesh (the true vine) while the reference is rendered
+    from the twin. A twin 4 mm off its world along the row ends the servo 4 mm off the pose in
+    the world (the twin's error counted), and a world equal to the twin ends on the pose; a
+    world away from the twin's frame is refused by name, a missing one too."""
+    import shutil
+
+    from vinetwin.errors import InputError, VinetwinError
+    from vinetwin.mesh import load_mesh
+    from vinetwin.sim.config import ValidateConfig
+    from vinetwin.sim.validate import validate, validate_folder
+    from vinetwin.twin import Twin
+
+    root = tmp_path / "v.twin"
+    shutil.copytree(sample_twin_dir, root)
+    mesh = load_mesh(Twin.load(root).mesh_path)
+    shifted, far = mesh.copy(), mesh.copy()
+    shifted.apply_translation([0.004, 0.0, 0.0])
+    far.apply_translation([0.0, 0.0, 3.0])
+    shifted.export(tmp_path / "shifted.ply")
+    far.export(tmp_path / "far.ply")
+
+    def cfg(world: str) -> ValidateConfig:
+        return ValidateConfig(
+            variants=("point_to_plane",), poses=("p1",), starts=1, radius_translation=0.02,
+            radius_rotation=0.05, duration=6.0, workers=1, world=world,
+        )  # fmt: skip
+
+    errors = {}
+    for name, world in (("same", str(Twin.load(root).mesh_path)), ("shifted", "shifted.ply")):
+        w = world if name == "same" else str(tmp_path / world)
+        summary = validate(Twin.load(root), cfg(w))
+        errors[name] = summary["poses"][0]["variants"]["point_to_plane"]
+    assert errors["same"]["median_final_translation"] < 0.0015, errors
+    assert errors["shifted"]["median_final_translation"] == pytest.approx(0.004, abs=0.0015)
+    assert errors["shifted"]["median_final_cut_error"] == pytest.approx(0.004, abs=0.0015)
+    folder = root / "validation" / "world"
+    assert "World: " in (folder / "summary.md").read_text()
+    assert "validation_world" in Twin.load(root).pose("p1").extra
+    with pytest.raises(VinetwinError, match="is the world in the twin's vine frame"):
+        validate_folder(root, cfg(str(tmp_path / "far.ply")))
+    with pytest.raises(InputError, match="no such mesh file or twin folder"):
+        validate(Twin.load(root), cfg(str(tmp_path / "none.ply")))
+
+
 def test_an_arm_that_does_not_follow_is_a_named_stop(
     vine_views: VineViews, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -90,8 +90,14 @@ class Capture:
 def _read_png(path: Path, what: str) -> np.ndarray:
     import imageio.v3 as iio
 
-    if not path.exists():
-        raise CaptureError(f"{what}: {path} is missing")
+    try:  # a name too long for the file system, or a path through a file, raises here
+        present = path.is_file()
+    except OSError as exc:
+        raise CaptureError(
+            f"{what}: {str(path)[:200]} is not a usable path: {exc.strerror}"
+        ) from exc
+    if not present:
+        raise CaptureError(f"{what}: {str(path)[:200]} is missing")
     try:
         return np.asarray(iio.imread(path))
     except Exception as exc:

@@ -21,6 +21,8 @@ from vinetwin.sim.paper import PRESETS
 MAX_DURATION = 3600.0
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from vinetwin.frames import Array
 
 #: Fault classes the simulation can inject (`sim.faults`).
@@ -395,6 +397,12 @@ class ValidateConfig(JsonFields):
     the name, or the file's stem), and judges "converged" by its settled band."""
     sources: tuple[FieldSource, ...] = ()
     """Only these of the profile's error sources (default: the profile's own)."""
+    world: str = ""
+    """A mesh file (or a twin folder) of the vine the twin was made from, in the twin's vine
+    frame: the simulated camera sees it instead of the twin's mesh, the reference stays
+    rendered from the twin, and every final error is against it (a scanned or reconstructed
+    twin judged against the true vine). The twin is then the reconstruction: a profile's twin
+    source rebuilds nothing. Results are kept apart, in validation/PROFILE-world/."""
 
     def field_profile(self) -> FieldProfile:
         return load_profile(self.profile, self.sources or None)
@@ -405,11 +413,29 @@ class ValidateConfig(JsonFields):
         from pathlib import Path
 
         if not self.field_profile().sources:
-            return ""
+            return "world" if self.world else ""
         name = self.profile if self.profile in PROFILES else Path(self.profile).stem
         if self.sources:
             name += "-" + "-".join(self.sources)
+        if self.world:
+            name += "-world"
         return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
+
+    def world_mesh(self) -> Path | None:
+        """The world's mesh file (`world` names a mesh, or a twin folder: its mesh); None
+        without a world. Raises InputError when it is missing."""
+        from pathlib import Path
+
+        if not self.world:
+            return None
+        path = Path(self.world).expanduser()
+        if path.is_dir():
+            from vinetwin.twin.model import Twin
+
+            return Twin.load(path).mesh_path
+        if not path.is_file():
+            raise InputError(f"world {self.world}: no such mesh file or twin folder")
+        return path
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()

@@ -170,6 +170,10 @@ def validate_many(
     returns each twin's summary. A pose and variant whose runs failed (an error, a worker that
     died) is reported under `failed` in its twin's summary and left unwritten, so a rerun runs
     only it."""
+    if cfg.world and len(twins) > 1:
+        from vinetwin.errors import InputError
+
+        raise InputError(f"world names one vine; validate one twin with it, not {len(twins)}")
     plans = [_plan(twin, cfg) for twin in twins]
     groups = [g for _, gs, _ in plans for g in gs]
     where = {id(g): k for k, (_, gs, _) in enumerate(plans) for g in gs}
@@ -220,7 +224,15 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
     profile = cfg.field_profile()
     rebuilt: dict[str, Any] = {}
     true_mesh = rebuilt_mesh = None
-    if profile.on("twin"):
+    world = cfg.world_mesh()
+    if world is not None:  # the camera sees the true vine; the twin is the reconstruction
+        from vinetwin.mesh import load_mesh
+
+        ctx = {**ctx, "mesh_path": str(world), "mesh_sha256": file_sha256(world)}
+        rebuilt = {"mesh_path": str(twin.mesh_path), "mesh_sha256": mesh_sha}
+        true_mesh, rebuilt_mesh = load_mesh(world), twin.load_mesh()
+        mesh_sha = json_sha256([mesh_sha, ctx["mesh_sha256"]])
+    elif profile.on("twin"):
         from vinetwin.mesh import load_mesh
         from vinetwin.sim.field import reconstructed_twin
 
@@ -238,7 +250,10 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
             from vinetwin.sim.field import check_field_twin_view
 
             try:
-                check_field_twin_view(true_mesh, rebuilt_mesh, twin.camera, profile, pid, goal)
+                if world is None:
+                    check_field_twin_view(true_mesh, rebuilt_mesh, twin.camera, profile, pid, goal)
+                else:
+                    _check_world_view(true_mesh, rebuilt_mesh, twin, pid, goal, world)
             except VinetwinError as exc:
                 results.update({(pid, v): _Refused(str(exc)) for v in cfg.variants})
                 continue
@@ -279,6 +294,38 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
     return twin, groups, results
 
 
+def _check_world_view(world_mesh: Any, twin_mesh: Any, twin: Twin, pid: str, goal: Any,
+                      world: Path) -> None:  # fmt: skip
+    """Refuses a pose where the twin and the world do not show each other: either shows under
+    `MIN_VIEW_COVERAGE` of what the other shows (an empty reference or an empty view; a world
+    not in the twin's vine frame, most likely)."""
+    from vinetwin.errors import VinetwinError
+    from vinetwin.sim.field import MIN_VIEW_COVERAGE, view_coverage
+
+    twin_share = view_coverage(world_mesh, twin_mesh, twin.camera, goal)
+    world_share = view_coverage(twin_mesh, world_mesh, twin.camera, goal)
+    if min(twin_share, world_share) < MIN_VIEW_COVERAGE:
+        raise VinetwinError(
+            f"the twin shows {100 * twin_share:.0f}% of what the world {world} shows at pose "
+            f"{pid!r}, the world {100 * world_share:.0f}% of what the twin shows (less than "
+            f"{100 * MIN_VIEW_COVERAGE:.0f}%): the reference or the view would be empty; is the "
+            "world in the twin's vine frame?"
+        )
+
+
+def _final_errors(runs: list[dict[str, Any]]) -> dict[str, float | None]:
+    """Medians over the runs of the final pose error (m, rad) and of the cut point's error in
+    the camera (m): against the world's vine when `ValidateConfig.world` is given (None where
+    no run has one)."""
+    keys = ("final_translation", "final_rotation", "final_cut_error")
+    out: dict[str, float | None] = {}
+    for k in keys:
+        v = np.asarray([r.get(k, np.nan) for r in runs], float)
+        v = v[np.isfinite(v)]
+        out["median_" + k] = float(np.median(v)) if v.size else None
+    return out
+
+
 def _summarise(
     twin: Twin,
     cfg: ValidateConfig,
@@ -301,6 +348,7 @@ def _summarise(
                 "basin_rotation": r["basin_fraction"] * cfg.radius_rotation,
                 "starts": len(r["runs"]),
                 "lost": r.get("lost", 0),
+                **_final_errors(r["runs"]),
             }
         twin.pose(pid).extra["validation" + (f"_{sub}" if (sub := cfg.profile_dir()) else "")] = {
             "radius_translation": cfg.radius_translation,
@@ -328,6 +376,16 @@ def _profile_line(cfg: dict[str, Any]) -> list[str]:
     ]
 
 
+def _world_line(cfg: dict[str, Any]) -> list[str]:
+    w = cfg.get("world")
+    if not w:
+        return []
+    return [
+        f"World: {w}. The camera saw that vine and the reference was rendered from this twin, "
+        "so every error is against the world's vine, the twin's own error included.\n"
+    ]
+
+
 def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
     cfg = summary["config"]
     variants = list(cfg["variants"])
@@ -335,8 +393,10 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
         f"# Servo-ability of {summary['twin']}\n",
         f"{cfg['starts']} starts per pose and variant, up to {1000 * cfg['radius_translation']:.0f} mm "
         f"and {cfg['radius_rotation']:.2f} rad away. Each cell: success rate; convergence basin "
-        '(every start this close converged); runs that ended with a named stop ("lost the vine", '
-        '"the arm does not follow"), if any.\n',
+        "(every start this close converged); the median final error at the cut (the cut point's "
+        "offset in the camera from where the pose puts it); runs that ended with a named stop "
+        '("lost the vine", "the arm does not follow"), if any.\n',
+        *_world_line(cfg),
         *_profile_line(cfg),
         "| pose | " + " | ".join(variants) + " |",
         "|---|" + "---|" * len(variants),
@@ -347,12 +407,16 @@ def _write_map(summary: dict[str, Any], out_dir: Path) -> None:
             c = row["variants"][v]
             if "failed" in c:
                 shown = "the field twin rebuilt" in c["failed"]  # `_Refused`: not run
-                cells.append("not in the field twin's view" if shown else "failed (run again)")
+                unseen = c["failed"].startswith("the twin shows")
+                cells.append("not in the field twin's view" if shown
+                             else "not in the twin's view" if unseen else "failed (run again)")  # fmt: skip
                 continue
             lost = f"; {c['lost']} stopped" if c.get("lost") else ""
+            cut = c.get("median_final_cut_error")
+            at_cut = f"; cut {1000 * cut:.1f} mm" if cut is not None else ""
             cells.append(
                 f"{100 * c['success_rate']:.0f}%; {1000 * c['basin_translation']:.0f} mm / "
-                f"{c['basin_rotation']:.2f} rad{lost}"
+                f"{c['basin_rotation']:.2f} rad{at_cut}{lost}"
             )
         lines.append(f"| {row['pose']} | " + " | ".join(cells) + " |")
     lines.append("\n![servo-ability map](summary.png)\n")
