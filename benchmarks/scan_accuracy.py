@@ -1,7 +1,8 @@
 """Skeleton and twin accuracy of `vinetwin import-scan` on simulated scans of plants whose truth
 is known: the bundled sample, a dense generated vine, two hydroshoot vines and two
 Tree-Models-Library trees (`../shared/data`), each scanned at the qualities of
-`scan.synthetic.QUALITY_LADDER`, written as a file in a scanner's frame (y up; vines in
+`scan.synthetic.QUALITY_LADDER` (a LiDAR-like scanner) or by a D405 rig (`--qualities d405`:
+`scan.synthetic.d405_scan`), written as a file in a scanner's frame (y up; vines in
 millimetres as photogrammetry writes them, trees in metres as LiDAR does), and
 imported with the command's own code (`import_scan`, units and up axis detected).
 
@@ -26,7 +27,7 @@ from vinetwin.scan.config import ScanImportConfig
 from vinetwin.scan.evaluate import mesh_accuracy, skeleton_accuracy
 from vinetwin.scan.frame import transform_skeleton
 from vinetwin.scan.importer import import_scan
-from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
+from vinetwin.scan.synthetic import QUALITY_LADDER, d405_scan, scanner_frame, simulate_scan
 from vinetwin.twin.skeleton import Skeleton, tube_mesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -71,11 +72,14 @@ def run_one(name: str, quality: str, seed: int, work: Path, trellis: bool) -> di
     plant, _ = PLANTS[name]
     truth = truth_skeleton(name)
     V, F = tube_mesh(truth, edge=0.003, caps="round")
-    q = QUALITY_LADDER[quality]
-    if trellis:
-        q = dataclasses.replace(q, trellis=True)
-    wire = float(truth.branches[0].points[-1][2]) if plant == "vine" else None
-    P, _ = simulate_scan(V, F, q, seed, wire_height=wire)
+    if quality == "d405":  # an RGB-D rig's fused frames instead of a LiDAR-like scan
+        P = d405_scan(V, F, seed=seed)
+    else:
+        q = QUALITY_LADDER[quality]
+        if trellis:
+            q = dataclasses.replace(q, trellis=True)
+        wire = float(truth.branches[0].points[-1][2]) if plant == "vine" else None
+        P, _ = simulate_scan(V, F, q, seed, wire_height=wire)
     T_scan_vine = scanner_frame(seed)
     # vines as photogrammetry writes them (millimetres), trees as LiDAR does (metres)
     scale = 1000.0 if plant == "vine" else 1.0
@@ -107,7 +111,13 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--plants", nargs="*", default=list(PLANTS))
-    ap.add_argument("--qualities", nargs="*", default=list(QUALITY_LADDER))
+    ap.add_argument(
+        "--qualities",
+        nargs="*",
+        default=list(QUALITY_LADDER),
+        help="LiDAR-like qualities of scan.synthetic.QUALITY_LADDER, or d405 (a D405 rig's frames "
+        "fused: scan.synthetic.d405_scan)",
+    )
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--trellis", action="store_true", help="scan the ground, a wire and posts too")

@@ -333,6 +333,56 @@ def test_the_cut_rule_on_a_vine_built_to_know_the_answer() -> None:
     assert cut_candidates(sk, "vine", 0.35) == []  # canes too short for 2 buds of 35 cm
 
 
+def test_a_level_cane_is_not_a_cordon_and_a_cordon_running_on_into_a_cane_is_split() -> None:
+    """Permanent wood by its thickness (`candidates.CORDON_RADIUS` of the trunk's radius): a
+    30 cm level cane on the trunk's head stays a cane, and a cordon the skeleton followed on
+    into a thin level shoot is split where it thins, the shoot becoming a cane of its own."""
+    from vinetwin.scan.candidates import CORDON_RADIUS, label_kinds
+    from vinetwin.scan.frame import split_cordons
+    from vinetwin.twin.skeleton import Branch, Skeleton
+
+    line = np.linspace(0, 1, 60)[:, None]
+    z = np.array([0.0, 0.0, 1.0])
+    trunk = Branch(np.hstack([0 * line, 0 * line, 0.7 * line]), np.full(60, 0.015), "trunk")
+    # a cordon of 40 cm (radius 10 mm) running on level into a 30 cm shoot (radius 3 mm)
+    x = 0.7 * line
+    r = np.where(x[:, 0] <= 0.4, 0.010, 0.003)
+    cordon = Branch(np.hstack([x, 0 * line, 0.7 + 0 * line]), r, "cane", 0)
+    level_cane = Branch(np.hstack([-0.3 * line, 0 * line, 0.7 + 0 * line]), np.full(60, 0.004),
+                        "cane", 0)  # fmt: skip
+    sk = Skeleton([trunk, cordon, level_cane])
+    assert 0.004 < CORDON_RADIUS * 0.015 < 0.010
+    split_cordons(sk, z)
+    label_kinds(sk, z, "vine")
+    kinds = [b.kind for b in sk.branches]
+    assert kinds == ["trunk", "cordon", "cane", "cane"], kinds
+    end = sk.branches[1].points[-1, 0]
+    assert 0.39 <= end <= 0.43, end  # split where it thins (the median over 3 cm either side)
+    assert sk.branches[3].parent == 1 and np.isclose(sk.branches[3].points[-1, 0], 0.7)
+
+
+def test_a_d405_rig_scan_lies_on_the_plant_and_sees_both_sides() -> None:
+    """`synthetic.d405_scan`: the frames of both sides of the row, fused with their pose
+    errors, lie within a few millimetres of the mesh and cover most of it."""
+    from scipy.spatial import cKDTree
+
+    from vinetwin.scan.synthetic import d405_scan
+
+    V, F = tube_mesh(generate_vine(0), edge=0.003)
+    P = d405_scan(V, F, frames=24, seed=1)
+    assert len(P) > 50_000
+    d = cKDTree(V).query(P)[0]
+    assert np.median(d) < 0.003 and np.percentile(d, 90) < 0.006  # noise, pose error, edges
+    covered = cKDTree(P).query(V)[0] < 0.005
+    assert covered.mean() > 0.8, covered.mean()
+    # both faces of the row: the surface facing +Y (away from the first side) is seen as well
+    import trimesh
+
+    ny = trimesh.Trimesh(V, F, process=False).vertex_normals[:, 1]
+    for face in (ny < -0.7, ny > 0.7):
+        assert covered[face].mean() > 0.7, covered[face].mean()
+
+
 # ------------------------------------------------------------------------------ real scans, CLI
 def test_real_lidar_tree_scans_import() -> None:
     """WoodSKE's terrestrial-LiDAR scans of two trees (metres, z up, 25 mm spacing, no truth).

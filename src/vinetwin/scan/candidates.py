@@ -65,6 +65,12 @@ def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[Cut
     return out
 
 
+CORDON_RADIUS = 0.5
+"""A cordon's median radius is at least this share of the trunk's (measured on the generator's
+and hydroshoot's vines: cordons 0.61-0.82 of the trunk, canes and shoots at most 0.41), so a
+long level shoot or cane on a cordon is not taken for permanent wood."""
+
+
 def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
     """Names each branch's kind from its shape (in place): for a vine the root is the trunk,
     long near-horizontal branches from the trunk are cordons, branches carrying others on a
@@ -76,6 +82,7 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
     order = [i for i, b in enumerate(sk.branches) if b.parent < 0]
     for i in order:  # parents before children, however the list is ordered
         order.extend(children[i])
+    r_trunk = max((float(np.median(sk.branches[i].radii)) for i in order[:1]), default=0.0)
     for i in order:
         b = sk.branches[i]
         kind: BranchKind
@@ -87,7 +94,8 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
             Q = b.points - b.points.mean(0)
             flat = abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up))  # |sin| of its slope
             parent_kind = sk.branches[b.parent].kind
-            if parent_kind in ("trunk", "cordon") and b.length > 0.25 and flat < 0.5:
+            thick = float(np.median(b.radii)) >= CORDON_RADIUS * r_trunk
+            if parent_kind in ("trunk", "cordon") and b.length > 0.15 and flat < 0.5 and thick:
                 kind = "cordon"
             elif children[i] and b.length < 0.12:
                 kind = "spur"

@@ -123,12 +123,15 @@ def split_trunk(sk: Skeleton, up: Array) -> None:
 
 def split_cordons(sk: Skeleton, up: Array) -> None:
     """Splits each branch growing from the trunk that runs level for at least 15 cm (a cordon)
-    where it turns up or down by more than 40 degrees (where the skeleton followed the cordon
-    on into the cane of its last spur); in place. The rest becomes a branch of its own, hanging
-    from the cordon's end, appended (the order stays parents-first)."""
+    where it turns up or down by more than 40 degrees, or where it thins for good below
+    `candidates.CORDON_RADIUS` of the trunk's radius (where the skeleton followed the cordon on
+    into the cane or shoot of its last spur); in place. The rest becomes a branch of its own,
+    hanging from the cordon's end, appended (the order stays parents-first)."""
+    from vinetwin.scan.candidates import CORDON_RADIUS
     from vinetwin.twin.skeleton import Branch
 
     roots = {i for i, b in enumerate(sk.branches) if b.parent < 0}
+    r_ref = CORDON_RADIUS * float(np.median(sk.branches[min(roots)].radii)) if roots else 0.0
     for i in range(len(sk.branches)):
         b = sk.branches[i]
         if b.parent not in roots:
@@ -143,6 +146,9 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
                 if s[k] >= 0.15 and s[-1] - s[k] >= 0.05:
                     k_split = k
                 break
+        k_thin = _thin_from(s, b.radii, r_ref)
+        if k_thin is not None and (k_split is None or k_thin < k_split):
+            k_split = k_thin
         if k_split is None:
             continue
         k = k_split
@@ -156,3 +162,19 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
                 j = int(np.argmin(np.linalg.norm(P - c.points[0], axis=1)))
                 if j > k:
                     c.parent = new
+
+
+def _thin_from(s: Array, r: Array, r_ref: float, window: float = 0.03) -> int | None:
+    """The index from which a branch thick at its start (its first 15 cm's median radius at
+    least `r_ref`) stays thin: its radius (a median over `window` either side) below `r_ref`
+    from there on, at least 15 cm from its start and 5 cm before its end; None if it does not."""
+    if r_ref <= 0 or s[-1] < 0.2 or float(np.median(r[s <= 0.15])) < r_ref:
+        return None
+    lo = np.searchsorted(s, s - window)
+    hi = np.searchsorted(s, s + window, side="right")
+    w = np.array([np.median(r[a:b]) for a, b in zip(lo, hi, strict=True)])
+    thick = np.flatnonzero(w >= r_ref)
+    k = int(thick[-1]) + 1 if len(thick) else 0
+    if k >= len(s) or s[k] < 0.15 or s[-1] - s[k] < 0.05:
+        return None
+    return k
