@@ -13,10 +13,11 @@ export's chain), the time to propose, and:
   (the skeleton's share of the error), once with the true twin's own nodes (the whole chain).
 
     .venv/bin/python benchmarks/propose.py [--plants sample dense ...] [--rules spur cane]
-        [--agreement] [--keep DIR] [--json benchmarks/results/propose.json]
+        [--agreement] [--keep DIR] [--check-profile PROFILE] [--json benchmarks/results/propose.json]
         [--picture docs/results/proposals_dense.png]
 
 `--keep DIR` leaves the proposed twins there (for `vinetwin validate DIR --profile field`).
+`--check-profile PROFILE` checks each pose by the servo while proposing (`ServoCheckConfig`).
 """
 
 from __future__ import annotations
@@ -34,7 +35,13 @@ from typing import Any
 import numpy as np
 
 from vinetwin import _lazy
-from vinetwin.plan.config import BodyConfig, ProposeConfig, RuleConfig, SearchConfig
+from vinetwin.plan.config import (
+    BodyConfig,
+    ProposeConfig,
+    RuleConfig,
+    SearchConfig,
+    ServoCheckConfig,
+)
 from vinetwin.plan.proposer import propose
 from vinetwin.twin.model import Twin
 from vinetwin.twin.poses import pruning_pose
@@ -121,10 +128,11 @@ def reference_points(twin: Twin, pose_ids: list[str]) -> list[int]:
         backend.close()
 
 
-def run_plant(name: str, rule: str, work: Path) -> dict[str, Any]:
+def run_plant(name: str, rule: str, work: Path, check_profile: str = "") -> dict[str, Any]:
     root = work / f"{name}_{rule}.twin"
     twin = make_twin(name, root)
-    cfg = ProposeConfig(rule=RuleConfig(rule=rule))  # type: ignore[arg-type]
+    servo = ServoCheckConfig(check_profile=check_profile)
+    cfg = ProposeConfig(rule=RuleConfig(rule=rule), servo=servo)  # type: ignore[arg-type]
     t0 = time.perf_counter()
     try:
         result = propose(twin, cfg)
@@ -161,6 +169,8 @@ def run_plant(name: str, rule: str, work: Path) -> dict[str, Any]:
         "min_reference_points": int(min(refs)) if refs else 0,
         "default_colliding": int(sum(d <= 0 for d in dflt_dists)),
         "default_bad": int(default_bad), "default_bad_fixed": int(fixed),
+        **({"servo_check": {r["pose_id"]: r["servo_check"] for r in result.rows
+                            if "servo_check" in r}} if check_profile else {}),
     }  # fmt: skip
 
 
@@ -270,6 +280,13 @@ def main() -> None:
     ap.add_argument("--rules", nargs="*", default=["spur", "cane"])
     ap.add_argument("--agreement", action="store_true", help="also the scanned-twin agreement")
     ap.add_argument("--keep", type=Path, help="leave the proposed twins in this folder")
+    ap.add_argument(
+        "--check-profile",
+        default="",
+        help="check each pose by the servo under "
+        "this profile (`propose --check-profile`); the large vines and the tree want a "
+        'profile with "twin_trajectory": "poses"',
+    )
     ap.add_argument("--json", type=Path)
     ap.add_argument("--picture", type=Path, help="draw the dense vine's spur proposals here")
     a = ap.parse_args()
@@ -283,7 +300,7 @@ def main() -> None:
         print("|---|---|---|---|---|---|---|---|---|---|---|")
         for name in a.plants:
             for rule in a.rules:
-                r = run_plant(name, rule, work)
+                r = run_plant(name, rule, work, a.check_profile)
                 rows.append(r)
                 if "error" in r:
                     print(f"| {name} | {rule} | refused: {r['error']} |", flush=True)

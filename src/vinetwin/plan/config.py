@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 from vinetwin._config import JsonFields, check_finite
 from vinetwin.errors import InputError
@@ -160,11 +160,64 @@ class SearchConfig(JsonFields):
 
 
 @dataclass(frozen=True, kw_only=True)
+class ServoCheckConfig(JsonFields):
+    """Whether each proposed pose is checked by the servo before it is proposed: `vinetwin
+    validate`'s closed-loop runs (point-to-plane ICP) from `check_starts` starts up to the
+    radii; a pose that does not converge from every start is replaced by the search's next
+    directions, best score first, and the one converging from the most starts is kept (a tie:
+    the better score). The checks are written into the twin as `vinetwin validate` writes them."""
+
+    check_profile: str = ""
+    """Error profile of the check: ideal, field or a JSON file (see `campaign --profile`);
+    empty: no check (validate later)."""
+    check_starts: int = 4
+    """Runs per pose, from 1/N to N/N of the radii away."""
+    check_translation: float = 0.05
+    """Farthest start (m)."""
+    check_rotation: float = 0.15
+    """Farthest start (rad)."""
+    check_alternatives: int = 3
+    """Other directions tried for a pose that does not converge from every start."""
+    check_seed: int = 0
+    """Seed of the starts and the noise."""
+    check_workers: int = 0
+    """Processes of the check's runs; 0: one per core."""
+
+    def __post_init__(self) -> None:
+        check_finite(self, ("check_translation", "check_rotation"))
+        for name, lo, top in (("check_starts", 1, 24), ("check_alternatives", 0, 10),
+                              ("check_workers", 0, 256)):  # fmt: skip
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= top:
+                raise InputError(f"{name} must be an integer from {lo} to {top}, got {v!r}")
+        if not (0.0 < self.check_translation <= 0.3 and 0.0 < self.check_rotation <= 1.0):
+            raise InputError("check_translation must lie in (0, 0.3] m and check_rotation in "
+                             f"(0, 1] rad, got {self.check_translation}, {self.check_rotation}")  # fmt: skip
+        if self.check_profile:
+            from vinetwin.sim.config import load_profile
+
+            load_profile(
+                self.check_profile
+            )  # an unknown profile is named now, not after the search
+
+    def validate_config(self, poses: tuple[str, ...]) -> Any:
+        """The `ValidateConfig` of the check, for these poses."""
+        from vinetwin.sim.config import ValidateConfig
+
+        return ValidateConfig(variants=("point_to_plane",), poses=poses, starts=self.check_starts,
+                              radius_translation=self.check_translation,
+                              radius_rotation=self.check_rotation, seed=self.check_seed,
+                              workers=self.check_workers, profile=self.check_profile)  # fmt: skip
+
+
+@dataclass(frozen=True, kw_only=True)
 class ProposeConfig(JsonFields):
-    """`vinetwin propose`: a rule, the pose search, and what happens to earlier proposals."""
+    """`vinetwin propose`: a rule, the pose search, the servo's check of each pose, and what
+    happens to earlier proposals."""
 
     rule: RuleConfig = field(default_factory=RuleConfig)
     search: SearchConfig = field(default_factory=SearchConfig)
+    servo: ServoCheckConfig = field(default_factory=ServoCheckConfig)
     replace: bool = False
     """Replace the earlier proposals not yet accepted (never a person's own cuts). Without it a
     proposal within 1 cm of a cut point already there is not added again."""

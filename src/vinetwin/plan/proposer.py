@@ -70,13 +70,21 @@ class ProposeResult:
             "| cut | action | reason | pose | clearance mm | cane seen | points | default clearance mm |",
             "|---|---|---|---|---|---|---|---|",
         ]
+        checked = any("servo_check" in r for r in self.rows)
+        if checked:
+            lines[2] += " servo check: converged (directions tried) |"
+            lines[3] += "---|"
         for r in self.rows:
             s, d = r.get("search") or {}, r["default"]
-            lines.append(
+            line = (
                 f"| {r['id']} | {r['action']} | {r['reason']} | {r['pose']} | "
                 f"{s.get('clearance_m', float('nan')) * 1000:.1f} | {s.get('visible', 0):.0%} | "
                 f"{s.get('points', 0)} | {d['clearance_m'] * 1000:.1f} |"
             )
+            if checked:
+                c = r.get("servo_check")
+                line += f" {c['success_rate']:.0%} ({c['tried']}) |" if c else " |"
+            lines.append(line)
         return "\n".join(lines)
 
 
@@ -123,6 +131,7 @@ def propose(
         mesh = twin.load_mesh()
         obstacles = VineObstacles(np.asarray(mesh.vertices), np.asarray(mesh.faces), twin.camera)
     settings = cfg.to_dict()
+    ranked: dict[str, list[Any]] = {}
     for k, p in enumerate(proposals):
         if progress:
             progress(k, len(proposals))
@@ -143,9 +152,22 @@ def propose(
             pose.extra["search"] = found.best.summary()
             rec["search"] = row["search"] = found.best.summary()
             row["pose_id"] = pose.id
+            ranked[pose.id] = found.ranked
         cut.extra["proposal"] = rec
         result.rows.append(row)
     twin.extra["proposal_settings"] = settings
+    if cfg.servo.check_profile and ranked:
+        from vinetwin.plan.servo_check import servo_check
+
+        checks = servo_check(twin, ranked, cfg.servo)
+        for row in result.rows:
+            c = checks.get(row.get("pose_id", ""))
+            if c is None:
+                continue
+            rec = twin.cut_point(row["id"]).extra["proposal"]
+            rec["search"] = row["search"] = c.ranked[c.kept].summary()
+            rec["servo_check"] = row["servo_check"] = c.to_json(cfg.servo.check_profile)
+        save = True  # the check's validations are in the twin already
     if save:
         twin.save()
     result.seconds = time.perf_counter() - t0
@@ -207,6 +229,11 @@ def describe_cut(twin: Twin, cut_id: str) -> str:
         if s:
             lines.append(f"pose {p.id}: clearance {s['clearance_m'] * 1000:.1f} mm, cane seen "
                          f"{s['visible']:.0%}, {s['points']} points")  # fmt: skip
+        chk = p.extra.get("servo_check")
+        if isinstance(chk, dict) and "success_rate" in chk:
+            lines.append(f"servo check ({chk.get('profile')}): converged from "
+                         f"{chk['success_rate']:.0%} of the starts, direction "
+                         f"{chk.get('kept', 0) + 1} of {chk.get('tried', 1)} tried")  # fmt: skip
         for key, val in sorted(p.extra.items()):
             if key.startswith("validation") and isinstance(val, dict):
                 rates = [

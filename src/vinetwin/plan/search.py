@@ -22,7 +22,7 @@ direction gets no pose, with the reason.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -74,6 +74,8 @@ class Found:
     reason: str
     default: Candidate
     tried: int
+    ranked: list[Candidate] = field(default_factory=list)
+    """Every direction that passes, best score first (the first is `best`)."""
 
 
 class VineObstacles:
@@ -258,4 +260,5 @@ def _choose(obs: VineObstacles, tried: list[Candidate], default: Candidate, cut:
             f"{cfg.min_points} vine points (best: {max(c.visible for c in seen):.0%} seen)"
         )
         return Found(None, why, default, len(tried))
-    return Found(max(good, key=lambda c: c.score), "", default, len(tried))
+    ranked = sorted(good, key=lambda c: -c.score)
+    return Found(ranked[0], "", default, len(tried), ranked)
