@@ -43,6 +43,7 @@ from vinetwin.plan.config import (
     ServoCheckConfig,
 )
 from vinetwin.plan.proposer import propose
+from vinetwin.sim.servo_check import propose_checked
 from vinetwin.twin.model import Twin
 from vinetwin.twin.poses import pruning_pose
 
@@ -135,7 +136,7 @@ def run_plant(name: str, rule: str, work: Path, check_profile: str = "") -> dict
     cfg = ProposeConfig(rule=RuleConfig(rule=rule), servo=servo)  # type: ignore[arg-type]
     t0 = time.perf_counter()
     try:
-        result = propose(twin, cfg)
+        result = propose_checked(twin, cfg) if check_profile else propose(twin, cfg)
     except Exception as exc:  # a rule that refuses a plant is a result
         return {"plant": name, "rule": rule, "error": str(exc)[:200]}
     secs = time.perf_counter() - t0

@@ -2,7 +2,7 @@
 is known: the bundled sample, a dense generated vine, two hydroshoot vines and two
 Tree-Models-Library trees (`../shared/data`), each scanned at the qualities of
 `scan.synthetic.QUALITY_LADDER` (a LiDAR-like scanner) or by a D405 rig (`--qualities d405`:
-`scan.synthetic.d405_scan`), written as a file in a scanner's frame (y up; vines in
+`reconstruct.synthetic.d405_scan`), written as a file in a scanner's frame (y up; vines in
 millimetres as photogrammetry writes them, trees in metres as LiDAR does), and
 imported with the command's own code (`import_scan`, units and up axis detected).
 
@@ -23,11 +23,12 @@ from typing import Any
 
 import numpy as np
 
+from vinetwin.reconstruct.synthetic import d405_scan
 from vinetwin.scan.config import ScanImportConfig
 from vinetwin.scan.evaluate import mesh_accuracy, skeleton_accuracy
 from vinetwin.scan.frame import transform_skeleton
 from vinetwin.scan.importer import import_scan
-from vinetwin.scan.synthetic import QUALITY_LADDER, d405_scan, scanner_frame, simulate_scan
+from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
 from vinetwin.twin.skeleton import Skeleton, tube_mesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -116,7 +117,7 @@ def main() -> None:
         nargs="*",
         default=list(QUALITY_LADDER),
         help="LiDAR-like qualities of scan.synthetic.QUALITY_LADDER, or d405 (a D405 rig's frames "
-        "fused: scan.synthetic.d405_scan)",
+        "fused: reconstruct.synthetic.d405_scan)",
     )
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--json", type=Path)

@@ -366,7 +366,7 @@ def test_a_d405_rig_scan_lies_on_the_plant_and_sees_both_sides() -> None:
     errors, lie within a few millimetres of the mesh and cover most of it."""
     from scipy.spatial import cKDTree
 
-    from vinetwin.scan.synthetic import d405_scan
+    from vinetwin.reconstruct.synthetic import d405_scan
 
     V, F = tube_mesh(generate_vine(0), edge=0.003)
     P = d405_scan(V, F, frames=24, seed=1)

@@ -10,11 +10,15 @@ import pytest
 
 from tests.test_propose import known_vine
 from vinetwin.errors import InputError
-from vinetwin.plan import servo_check as sc
 from vinetwin.plan.config import ProposeConfig, ServoCheckConfig
-from vinetwin.plan.proposer import propose
+from vinetwin.plan.proposer import propose as plain_propose
+from vinetwin.sim import servo_check as sc
 from vinetwin.twin.model import Twin, twin_from_skeleton
 from vinetwin.twin.poses import pruning_pose
+
+
+def propose(twin: Twin, cfg: ProposeConfig):  # the check is the simulation's: handed in
+    return sc.propose_checked(twin, cfg)
 
 
 @pytest.fixture
@@ -124,11 +128,21 @@ def test_the_check_runs_the_closed_loop_and_writes_its_validation(twin: Twin) ->
     [({"check_starts": 0}, "check_starts"), ({"check_alternatives": 11}, "check_alternatives"),
      ({"check_workers": -1}, "check_workers"),
      ({"check_translation": 0.5}, "check_translation"), ({"check_rotation": float("nan")},
-     "check_rotation"), ({"check_profile": "no-such-profile"}, "no-such-profile")],
+     "check_rotation")],
 )  # fmt: skip
 def test_check_settings_out_of_range_are_named(kw: dict, name: str) -> None:
     with pytest.raises(InputError, match=name):
         ServoCheckConfig(**kw)
+
+
+def test_an_unknown_profile_or_no_check_is_named_before_anything_is_written(twin: Twin) -> None:
+    before = (twin.root / "twin.json").read_text()
+    with pytest.raises(InputError, match="no-such-profile"):
+        propose(twin, ProposeConfig(servo=ServoCheckConfig(check_profile="no-such-profile")))
+    # the planner alone cannot run the check (it does not import the simulation): it says so
+    with pytest.raises(InputError, match="propose_checked"):
+        plain_propose(twin, ProposeConfig(servo=ServoCheckConfig(check_profile="ideal")))
+    assert (twin.root / "twin.json").read_text() == before
 
 
 def test_the_command_names_a_bad_check_and_writes_nothing(

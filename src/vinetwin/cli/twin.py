@@ -93,7 +93,10 @@ class Propose:
     def run(self) -> None:
         from vinetwin.plan.proposer import propose_folder
 
-        propose_folder(self.twin, self.config, json_path=self.json, echo=print)
+        fn = None
+        if self.config.servo.check_profile:  # the servo's check runs the simulation
+            from vinetwin.sim.servo_check import propose_checked as fn
+        propose_folder(self.twin, self.config, json_path=self.json, echo=print, propose_fn=fn)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 from vinetwin._config import JsonFields, check_finite
 from vinetwin.errors import InputError
@@ -169,7 +169,7 @@ class ServoCheckConfig(JsonFields):
 
     check_profile: str = ""
     """Error profile of the check: ideal, field or a JSON file (see `campaign --profile`);
-    empty: no check (validate later)."""
+    empty: no check (validate later). The check runs the simulation (`sim.servo_check`)."""
     check_starts: int = 4
     """Runs per pose, from 1/N to N/N of the radii away."""
     check_translation: float = 0.05
@@ -193,21 +193,6 @@ class ServoCheckConfig(JsonFields):
         if not (0.0 < self.check_translation <= 0.3 and 0.0 < self.check_rotation <= 1.0):
             raise InputError("check_translation must lie in (0, 0.3] m and check_rotation in "
                              f"(0, 1] rad, got {self.check_translation}, {self.check_rotation}")  # fmt: skip
-        if self.check_profile:
-            from vinetwin.sim.config import load_profile
-
-            load_profile(
-                self.check_profile
-            )  # an unknown profile is named now, not after the search
-
-    def validate_config(self, poses: tuple[str, ...]) -> Any:
-        """The `ValidateConfig` of the check, for these poses."""
-        from vinetwin.sim.config import ValidateConfig
-
-        return ValidateConfig(variants=("point_to_plane",), poses=poses, starts=self.check_starts,
-                              radius_translation=self.check_translation,
-                              radius_rotation=self.check_rotation, seed=self.check_seed,
-                              workers=self.check_workers, profile=self.check_profile)  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -106,10 +106,18 @@ def propose(
     obstacles: VineObstacles | None = None,
     progress: Callable[[int, int], None] | None = None,
     save: bool = True,
+    check: Callable[[Twin, dict[str, list[Any]], Any], dict[str, Any]] | None = None,
 ) -> ProposeResult:
     """Proposes cuts on the twin by `cfg.rule`, each with a searched pose, and saves the twin
-    (unless `save` is False: the web app's session saves itself)."""
+    (unless `save` is False: the web app's session saves itself). With `cfg.servo.check_profile`,
+    `check` is the servo's check (`sim.servo_check.servo_check`; `sim.servo_check.propose_checked`
+    passes it): it runs the simulation, which this package does not import."""
     cfg = cfg or ProposeConfig()
+    if cfg.servo.check_profile and check is None:
+        raise InputError(
+            "the servo's check (check_profile) runs the simulation: call "
+            "vinetwin.sim.servo_check.propose_checked, or `vinetwin propose --check-profile`"
+        )
     t0 = time.perf_counter()
     sk = _require_skeleton(twin)
     proposals = propose_cuts(sk, cfg.rule)
@@ -156,10 +164,8 @@ def propose(
         cut.extra["proposal"] = rec
         result.rows.append(row)
     twin.extra["proposal_settings"] = settings
-    if cfg.servo.check_profile and ranked:
-        from vinetwin.plan.servo_check import servo_check
-
-        checks = servo_check(twin, ranked, cfg.servo)
+    if check is not None and cfg.servo.check_profile and ranked:
+        checks = check(twin, ranked, cfg.servo)
         for row in result.rows:
             c = checks.get(row.get("pose_id", ""))
             if c is None:
@@ -199,10 +205,12 @@ def propose_folder(
     *,
     json_path: Path | None = None,
     echo: Callable[[str], None] | None = None,
+    propose_fn: Callable[..., ProposeResult] | None = None,
 ) -> ProposeResult:
-    """`vinetwin propose`: proposes on the twin at `path`, prints the table, writes the JSON."""
+    """`vinetwin propose`: proposes on the twin at `path` (with `propose_fn`, default
+    `propose`), prints the table, writes the JSON."""
     twin = Twin.load(path)
-    result = propose(twin, cfg)
+    result = (propose_fn or propose)(twin, cfg)
     if echo is not None:
         echo(result.markdown())
     if json_path is not None:

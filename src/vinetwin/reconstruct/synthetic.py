@@ -148,3 +148,71 @@ def synthetic_capture(
     extra = {"provenance": {"generator": "vinetwin.reconstruct.synthetic", "twin": twin.name,
                             "seed": seed, "distance": distance, "pose_noise": list(pose_noise)}}  # fmt: skip
     return write_capture(out, cam, rows, extra=extra)
+
+
+def d405_scan(
+    V: Array,
+    F: np.ndarray,
+    frames: int = 120,
+    seed: int = 0,
+    *,
+    pose_noise: tuple[float, float] = (0.001, 0.002),
+    distance: float = 0.3,
+    voxel: float = 0.002,
+) -> Array:
+    """Points (vine frame, metres) of the mesh (V, F) seen by a simulated D405 from `frames`
+    viewpoints on each side of the row (the vine frame's -Y and +Y), fused with per-frame pose
+    errors (`pose_noise`: m and rad, standard deviations per axis) and thinned to one point per
+    `voxel`: a D405 rig's frames fused into one cloud by another tool, as a group holding a
+    robot or a handheld RGB-D camera would have it (a scan for `vinetwin import-scan`: its
+    benchmark's `--qualities d405`). A grid of viewpoints over the whole plant, `distance` from
+    it, from both sides of the row, each frame through the D405 depth model (depth noise
+    growing with the square of the depth, edge and speckle dropouts), back-projected with its
+    recorded pose (an error per frame: the capture's odometry or robot kinematics, so the
+    frames disagree by a few millimetres)."""
+    from vinetwin.camera import d405
+    from vinetwin.cloud import voxel_downsample
+
+    cam = d405()
+    rng = np.random.default_rng(seed)
+    mirror = np.diag([1.0, -1.0, 1.0, 1.0])  # the other side of the row: y -> -y
+    sides = [(V, F, np.eye(4)), (V @ mirror[:3, :3], F[:, ::-1], mirror)]
+    parts = []
+    for Vs, Fs, M in sides:
+        backend = raycaster(Vs, Fs, cam)
+        try:
+            for T in _grid_views(Vs, frames, distance):
+                depth = apply_d405_model(backend.render(T), cam, rng, SensorConfig())
+                pts, _ = cam.deproject(depth)
+                if not len(pts):
+                    continue
+                dT = make_pose(so3_exp(rng.normal(0, pose_noise[1], 3)),
+                               rng.normal(0, pose_noise[0], 3))  # fmt: skip
+                parts.append(transform_points(M @ T @ dT, pts))
+        finally:
+            backend.close()
+    if not parts:
+        return np.zeros((0, 3))
+    return voxel_downsample(np.concatenate(parts), voxel)[0]
+
+
+def _grid_views(V: Array, frames: int, distance: float) -> list[Array]:
+    """`frames` camera poses on a grid over the whole plant's front (the vine frame's -Y side),
+    `distance` from the plane through its middle, rows and columns in proportion to its width and
+    height, each looking straight at the plant with a small alternating tilt (so canes are seen
+    from several sides, as a hand-held or robot sweep sees them)."""
+    lo, hi = np.percentile(V, 1, axis=0), np.percentile(V, 99, axis=0)
+    w, h = max(hi[0] - lo[0], 1e-3), max(hi[2] - lo[2], 1e-3)
+    cols = max(1, round(float(np.sqrt(frames * w / h))))
+    rows = max(1, int(np.ceil(frames / cols)))
+    y = 0.5 * (lo[1] + hi[1])
+    poses = []
+    for k in range(rows * cols):
+        if len(poses) == frames:
+            break
+        r, c = divmod(k, cols)
+        target = np.array([lo[0] + w * (c + 0.5) / cols, y, lo[2] + h * (r + 0.5) / rows])
+        yaw, pitch = 0.35 * np.sin(1.7 * k), 0.25 * np.cos(1.3 * k)
+        d = np.array([np.sin(yaw), -np.cos(yaw) * np.cos(pitch), np.sin(pitch)])
+        poses.append(look_at(target + distance * d, target))
+    return poses

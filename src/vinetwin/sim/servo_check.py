@@ -1,5 +1,8 @@
 """The servo's check of proposed poses (`vinetwin propose --check-profile PROFILE`).
 
+It lives in `sim` (it runs the closed loop) and is handed to `plan.proposer.propose` as its
+`check` (`propose_checked` does both): `plan` does not import the simulation.
+
 The search (`search`) ranks the clear directions of each cut by what it can see from the mesh:
 clearance, the cane's visible share, the points in view. Whether the ICP servo converges to the
 pose from where the arm will start it is another matter, which only the closed loop tells (on
@@ -18,8 +21,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from vinetwin.plan.config import ServoCheckConfig
+from vinetwin.plan.config import ProposeConfig, ServoCheckConfig
 from vinetwin.plan.search import Candidate
+from vinetwin.sim.config import ValidateConfig, load_profile
 from vinetwin.twin.model import Twin
 from vinetwin.twin.poses import pruning_pose
 
@@ -55,10 +59,18 @@ def _set(twin: Twin, pid: str, c: Candidate) -> None:
     twin.pose(pid).extra["search"] = c.summary()
 
 
+def validate_config(cfg: ServoCheckConfig, poses: tuple[str, ...]) -> ValidateConfig:
+    """The `ValidateConfig` of the check, for these poses."""
+    return ValidateConfig(variants=("point_to_plane",), poses=poses, starts=cfg.check_starts,
+                          radius_translation=cfg.check_translation,
+                          radius_rotation=cfg.check_rotation, seed=cfg.check_seed,
+                          workers=cfg.check_workers, profile=cfg.check_profile)  # fmt: skip
+
+
 def _rates(twin: Twin, cfg: ServoCheckConfig, pids: list[str]) -> dict[str, tuple[float, str]]:
     from vinetwin.sim.validate import validate
 
-    summary = validate(twin, cfg.validate_config(tuple(pids)))
+    summary = validate(twin, validate_config(cfg, tuple(pids)))
     out: dict[str, tuple[float, str]] = {}
     for row in summary["poses"]:
         cell = row["variants"]["point_to_plane"]
@@ -115,3 +127,13 @@ def servo_check(
     # the servo-ability map of every checked pose (their runs are stored: nothing runs again)
     _rates(twin, cfg, list(checks))
     return checks
+
+
+def propose_checked(twin: Twin, cfg: ProposeConfig, **kw: Any) -> Any:
+    """`plan.proposer.propose` with the servo's check (when `cfg.servo.check_profile` names a
+    profile; an unknown one is named before the search, and nothing is written)."""
+    from vinetwin.plan.proposer import propose
+
+    if cfg.servo.check_profile:
+        load_profile(cfg.servo.check_profile)
+    return propose(twin, cfg, check=servo_check, **kw)
