@@ -8,7 +8,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from vinetwin._config import JsonFields, check_finite
+from vinetwin._config import JsonFields, check_counts, check_finite
 from vinetwin.errors import InputError
 from vinetwin.twin.model import TOOL_REACH
 from vinetwin.twin.poses import DEFAULT_STANDOFF, STANDOFF_RANGE
@@ -185,8 +185,8 @@ class ServoCheckConfig(JsonFields):
 
     def __post_init__(self) -> None:
         check_finite(self, ("check_translation", "check_rotation"))
-        for name, lo, top in (("check_starts", 1, 24), ("check_alternatives", 0, 10),
-                              ("check_workers", 0, 256)):  # fmt: skip
+        check_counts(self, ("check_seed", "check_workers"))  # as `validate`'s seed and workers
+        for name, lo, top in (("check_starts", 1, 24), ("check_alternatives", 0, 10)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= top:
                 raise InputError(f"{name} must be an integer from {lo} to {top}, got {v!r}")

@@ -54,12 +54,16 @@ def sweep_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
             x = lo[0] + (hi[0] - lo[0]) * (c + 0.5) / cols
             z = zc + (hi[2] - zc) * ((r + 0.5) / rows - 0.5)
             target = np.array([x, 0.5 * (lo[1] + hi[1]), z])
-            # alternate the viewing direction a little so canes are seen from several sides
-            yaw = 0.35 * np.sin(1.7 * (r * cols + c))
-            pitch = 0.25 * np.cos(1.3 * (r * cols + c))
-            d = np.array([np.sin(yaw), -np.cos(yaw) * np.cos(pitch), np.sin(pitch)])
-            poses.append(look_at(target + distance * d, target))
+            poses.append(_view(target, r * cols + c, distance))
     return poses
+
+
+def _view(target: Array, k: int, distance: float) -> Array:
+    """The k-th viewpoint of a grid sweep, `distance` from `target` on the robot's side (-Y),
+    the viewing direction alternated a little so canes are seen from several sides."""
+    yaw, pitch = 0.35 * np.sin(1.7 * k), 0.25 * np.cos(1.3 * k)
+    d = np.array([np.sin(yaw), -np.cos(yaw) * np.cos(pitch), np.sin(pitch)])
+    return look_at(target + distance * d, target)
 
 
 def around_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
@@ -199,8 +203,7 @@ def d405_scan(
 def _grid_views(V: Array, frames: int, distance: float) -> list[Array]:
     """`frames` camera poses on a grid over the whole plant's front (the vine frame's -Y side),
     `distance` from the plane through its middle, rows and columns in proportion to its width and
-    height, each looking straight at the plant with a small alternating tilt (so canes are seen
-    from several sides, as a hand-held or robot sweep sees them)."""
+    height, each looking at the plant as `sweep_poses`' views do (`_view`)."""
     lo, hi = np.percentile(V, 1, axis=0), np.percentile(V, 99, axis=0)
     w, h = max(hi[0] - lo[0], 1e-3), max(hi[2] - lo[2], 1e-3)
     cols = max(1, round(float(np.sqrt(frames * w / h))))
@@ -212,7 +215,5 @@ def _grid_views(V: Array, frames: int, distance: float) -> list[Array]:
             break
         r, c = divmod(k, cols)
         target = np.array([lo[0] + w * (c + 0.5) / cols, y, lo[2] + h * (r + 0.5) / rows])
-        yaw, pitch = 0.35 * np.sin(1.7 * k), 0.25 * np.cos(1.3 * k)
-        d = np.array([np.sin(yaw), -np.cos(yaw) * np.cos(pitch), np.sin(pitch)])
-        poses.append(look_at(target + distance * d, target))
+        poses.append(_view(target, k, distance))
     return poses

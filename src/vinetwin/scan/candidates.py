@@ -82,7 +82,7 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
     order = [i for i, b in enumerate(sk.branches) if b.parent < 0]
     for i in order:  # parents before children, however the list is ordered
         order.extend(children[i])
-    r_trunk = max((float(np.median(sk.branches[i].radii)) for i in order[:1]), default=0.0)
+    r_trunk = float(np.median(sk.branches[order[0]].radii)) if order else 0.0
     for i in order:
         b = sk.branches[i]
         kind: BranchKind

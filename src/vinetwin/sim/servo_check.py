@@ -17,7 +17,6 @@ them.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,7 +32,6 @@ class Checked:
     """One pose's check: the directions tried (index into the search's ranking), the share of
     starts each converged from, and the one kept."""
 
-    pose_id: str
     ranked: list[Candidate]
     rates: list[float] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
@@ -84,23 +82,19 @@ def servo_check(
     twin: Twin,
     ranked: dict[str, list[Candidate]],
     cfg: ServoCheckConfig,
-    progress: Callable[[str], None] | None = None,
 ) -> dict[str, Checked]:
     """Checks the poses `ranked` names (pose id: the search's passing directions, best first;
     the pose set to the first) and replaces those that do not converge from every start, in
     place; saves the twin. Returns each pose's check."""
-    checks = {pid: Checked(pid, cands) for pid, cands in ranked.items() if cands}
+    checks = {pid: Checked(cands) for pid, cands in ranked.items() if cands}
     if not checks:
         return checks
     twin.save()
     todo = list(checks)
     for k in range(cfg.check_alternatives + 1):
-        if progress:
-            progress(f"servo check round {k + 1}: {len(todo)} poses ({cfg.check_profile})")
-        for pid in todo:
-            if k > 0:
-                _set(twin, pid, checks[pid].ranked[k])
         if k > 0:
+            for pid in todo:
+                _set(twin, pid, checks[pid].ranked[k])
             twin.save()
         for pid, (rate, err) in _rates(twin, cfg, todo).items():
             checks[pid].rates.append(rate)
