@@ -43,9 +43,15 @@ def test_cylinder_lists_import_with_matching_extent(name: str) -> None:
     path = shared("trees", "tree-models-library", name)
     assert detect_format(path) == "cylinders"
     sk = read_cylinders(path)
-    rows = np.array(
-        [ln.split() for ln in path.read_text().splitlines() if len(ln.split()) == 7], float
-    )
+    lines = [ln.split() for ln in path.read_text().splitlines()]
+    n = int(lines[0][0])  # the branches' block; the fruit's block follows (TreeRead.m)
+    rows = np.array(lines[1 : n + 1], float)
+    fruit = np.array(lines[n + 2 : n + 2 + int(lines[n + 1][0])], float)
+    assert len(fruit) >= 30  # spheres: each radius half its vector's length
+    np.testing.assert_allclose(fruit[:, 6], 0.5 * np.linalg.norm(fruit[:, 3:6], axis=1), rtol=0.02)
+    assert any(f"a block of {len(fruit)} fruit" in s for s in sk.skipped), sk.skipped
+    wood = np.linalg.norm(rows[:, 3:6], axis=1).sum()  # no fruit read as wood
+    np.testing.assert_allclose(sum(b.length for b in sk.branches), wood, rtol=1e-3)
     s, a, r = rows[:, :3], rows[:, 3:6], rows[:, 6]
     u = a / np.linalg.norm(a, axis=1, keepdims=True)
     ext = r[:, None] * np.sqrt(np.clip(1 - u**2, 0, 1))  # extent of a disc perpendicular to u
@@ -243,7 +249,8 @@ def test_every_shared_plant_file_imports_as_a_twin(path: str, tmp_path: Path) ->
     from vinetwin.twin.importers import import_twin
 
     twin = import_twin(shared(*path.split("/")), tmp_path / "t.twin", edge=0.01, cut_points=2)
-    assert twin.provenance["source"]["skipped"] == []  # these files are clean
+    said = twin.provenance["source"]["skipped"]  # these files are clean: at most fruit left out
+    assert all(s.endswith("fruit (spheres: each radius half its length), not wood") for s in said)
     assert len(twin.poses) == 2
     assert len(twin.load_mesh().faces) > 1000
 

@@ -20,13 +20,17 @@ skeleton and on the true skeleton of the same plant:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
+from scipy.spatial import cKDTree
 
 from vinetwin.frames import Array
 from vinetwin.scan.config import PlantKind
 from vinetwin.twin.importers import CANDIDATE_OFFSET
 from vinetwin.twin.skeleton import (
     FIRST_NODE,
+    PERMANENT,
     BranchKind,
     CutCandidate,
     Skeleton,
@@ -40,17 +44,20 @@ def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[Cut
     Candidates within 1 cm of an earlier one (canes sharing their base) are one."""
     vine = plant == "vine"
     offset = FIRST_NODE + 1.3 * internode if vine else CANDIDATE_OFFSET
+    wood = _permanent_surface(sk) if vine else None
     out: list[CutCandidate] = []
     for P, R, fork_r, branch in tip_paths(sk, "permanent" if vine else "fork"):
         if sk.branches[branch].parent < 0:
             continue  # the trunk's own top
         s = arc_length(P)
-        want = fork_r + offset
-        # straight-line distance from the fork: a noisy centre line's wiggles lengthen its arc
-        reach = np.maximum.accumulate(np.linalg.norm(P - P[0], axis=1))
+        if wood is not None:  # how far each point stands off the permanent wood's surface
+            reach, want = wood(P), offset
+        else:  # straight-line distance from the fork: a noisy centre line's wiggles lengthen its arc
+            reach, want = np.linalg.norm(P - P[0], axis=1), fork_r + offset
+        reach = np.maximum.accumulate(reach)
         if reach[-1] < want + 0.02:
             continue
-        k = int(np.searchsorted(reach, want))
+        k = int(np.clip(np.searchsorted(reach, want), 1, len(P) - 1))
         f = (want - reach[k - 1]) / max(reach[k] - reach[k - 1], 1e-12)
         point = P[k - 1] + f * (P[k] - P[k - 1])
         want = s[k - 1] + f * (s[k] - s[k - 1])
@@ -63,6 +70,28 @@ def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[Cut
         out.append(CutCandidate(point, axis, branch=branch, radius=float(np.interp(want, s, R)),
                                 label=f"{sk.branches[branch].label or branch}/cut"))  # fmt: skip
     return out
+
+
+def _permanent_surface(sk: Skeleton) -> Callable[[Array], Array]:
+    """The distance of points from the surface of the plant's permanent wood (trunk and
+    cordons: the distance from their axes less their radius there), from their axes sampled
+    every 2 mm."""
+    A, rA = [], []
+    for b in sk.branches:
+        if b.kind in PERMANENT or b.parent < 0:
+            s = arc_length(b.points)
+            t = np.linspace(0.0, s[-1], max(int(s[-1] / 0.002), 1) + 1)
+            A.append(np.column_stack([np.interp(t, s, b.points[:, d]) for d in range(3)]))
+            rA.append(np.interp(t, s, b.radii))
+    pts, rad = np.vstack(A), np.concatenate(rA)
+    tree = cKDTree(pts)
+
+    def surface(P: Array) -> Array:
+        d, i = tree.query(P, k=min(8, len(pts)))
+        d, i = d.reshape(len(P), -1), i.reshape(len(P), -1)
+        return (d - rad[i]).min(axis=1)
+
+    return surface
 
 
 CORDON_RADIUS = 0.5

@@ -11,7 +11,10 @@ Formats:
   axis hangs from the node it grows out of (see `_parent_key`).
 - **cylinder lists** (e.g. CearLab's Tree-Models-Library): one or more blocks, each a line N
   then N rows `x y z dx dy dz r` in metres: start point, axis vector (its length is the cylinder's length),
-  radius. Consecutive cylinders whose start is the previous one's end form one branch.
+  radius. Consecutive cylinders whose start is the previous one's end form one branch. The
+  Tree-Models-Library's files hold the branches, then the fruit (spheres: a vector across the
+  fruit and a radius half its length), then the trellis (`TreeRead.m`): a later block of
+  spheres only is fruit, reported in `Skeleton.skipped` and left out.
 """
 
 from __future__ import annotations
@@ -293,7 +296,8 @@ def read_cylinders(path: str | Path) -> Skeleton:
     `Skeleton.skipped` with its line number: a line that is not a count or 7 numbers, a
     non-finite value, a radius <= 0, a zero-length cylinder, a row repeating an earlier one, a
     block repeating an earlier block, a block with fewer rows than it announces (its rows are
-    kept). Disconnected pieces become separate branches. Only a file with nothing usable left
+    kept), a later block of fruit (see the module's docstring). Disconnected pieces become
+    separate branches. Only a file with nothing usable left
     fails, with the reasons.
 
     Cut-point candidates (`Skeleton.candidates`), the rule for cylinder trees: every branch
@@ -343,6 +347,10 @@ def read_cylinders(path: str | Path) -> Skeleton:
         if block and any([r for _, r in block] == [r for _, r in b] for b in blocks):
             skipped.append(f"line {head}: a block of {n} cylinders repeats an earlier block")
             continue
+        if blocks and block and all(_is_sphere(r) for _, r in block):
+            skipped.append(f"line {head}: a block of {len(block)} fruit (spheres: each radius "
+                           "half its length), not wood")  # fmt: skip
+            continue
         blocks.append(block)
     rows: list[tuple[int, Array]] = []
     seen: dict[tuple[float, ...], int] = {}
@@ -386,6 +394,14 @@ def read_cylinders(path: str | Path) -> Skeleton:
         i = j + 1
     _cylinder_candidates(sk)
     return sk
+
+
+def _is_sphere(row: tuple[float, ...]) -> bool:
+    """A Tree-Models-Library fruit: its file's second block (`TreeRead.m`: branches, then fruit,
+    then trellis) holds spheres as a start, a vector across the fruit and a radius half its
+    length."""
+    length = math.sqrt(row[3] ** 2 + row[4] ** 2 + row[5] ** 2)
+    return length > 0 and abs(row[6] - 0.5 * length) <= 0.02 * row[6]
 
 
 #: Where a cylinder tree's cut-point candidate sits on a lateral: this far from its base (m).
