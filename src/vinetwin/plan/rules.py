@@ -40,6 +40,8 @@ from vinetwin.twin.skeleton import (
     Skeleton,
     arc_length,
     nearest_on_polyline,
+    resample,
+    standoff,
     tip_paths,
 )
 
@@ -73,8 +75,11 @@ class Shoot:
     """The skeleton branch of its tip."""
     label: str
     arc: Array = field(init=False)
+    standoff: Array | None = None
+    """How far each point stands off the wood it grows from (`twin.skeleton.standoff`)."""
     reach: Array = field(init=False)
-    """Straight-line distance from its first point, never decreasing."""
+    """Distance from its first point (on the wood's axis), never decreasing: the standoff plus
+    the wood's radius where given, else the straight-line distance."""
     spur: int = -1
     part: float = 0.0
     """Arc position where it parts from the other shoots of its spur (or the wood)."""
@@ -85,7 +90,11 @@ class Shoot:
 
     def __post_init__(self) -> None:
         self.arc = arc_length(self.points)
-        self.reach = np.maximum.accumulate(np.linalg.norm(self.points - self.points[0], axis=1))
+        if self.standoff is not None:
+            reach = self.standoff + self.wood_radius
+        else:
+            reach = np.linalg.norm(self.points - self.points[0], axis=1)
+        self.reach = np.maximum.accumulate(np.maximum(reach, 0.0))
 
     def at(self, s: float) -> tuple[Array, Array, float]:
         """Point, unit axis and radius at arc position s."""
@@ -136,12 +145,13 @@ def shoots(sk: Skeleton) -> list[Shoot]:
     """The skeleton's shoots (see the module's docstring), junction noise left out."""
     if not sk.branches:
         raise InputError("the skeleton has no branches")
-    back_to = "permanent" if _vine(sk) else "fork"
+    vine = _vine(sk)
+    off = standoff(sk, "permanent" if vine else "rest")
     out = []
-    for P, R, wood_r, b in tip_paths(sk, back_to):
+    for P, R, wood_r, b in tip_paths(sk, "permanent" if vine else "fork"):
         if sk.branches[b].parent < 0 or len(P) < 2:
             continue
-        s = Shoot(P, R, wood_r, b, sk.branches[b].label or f"branch{b}")
+        s = Shoot(P, R, wood_r, b, sk.branches[b].label or f"branch{b}", standoff=off(P))
         if s.reach[-1] - wood_r < MIN_SHOOT:
             continue
         out.append(s)
@@ -168,13 +178,6 @@ def _group(shoots_: list[Shoot], radius: float) -> list[list[int]]:
     # along the plant: by the first point's position along its principal horizontal axis
     order = sorted(groups.values(), key=lambda g: tuple(starts[g[0]]))
     return order
-
-
-def _resample(P: Array, R: Array, step: float = 0.002) -> tuple[Array, Array]:
-    a = arc_length(P)
-    n = max(2, int(np.ceil(a[-1] / step)) + 1)
-    t = np.linspace(0.0, a[-1], n)
-    return np.column_stack([np.interp(t, a, P[:, d]) for d in range(3)]), np.interp(t, a, R)
 
 
 def _gap_reached(s: Shoot, gap: Array, level: float) -> float | None:
@@ -214,7 +217,7 @@ def _wood(sk: Skeleton) -> list[tuple[Array, Array]]:
     their fork)."""
     if not _vine(sk):
         return []
-    return [_resample(b.points, b.radii) for b in sk.branches
+    return [resample(b.points, b.radii) for b in sk.branches
             if (b.kind in PERMANENT or b.parent < 0) and len(b.points) > 1]  # fmt: skip
 
 
@@ -261,7 +264,7 @@ def analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]
         for rank, i in enumerate(order):
             s = ss[i]
             s.spur = g_i
-            longer = [_resample(ss[j].points, ss[j].radii) for j in order[:rank]]
+            longer = [resample(ss[j].points, ss[j].radii) for j in order[:rank]]
             if longer:
                 s.part, r_other = _first_clear(s, longer)
                 far = np.interp(s.part, s.arc, s.reach) > MAX_PARTING

@@ -6,35 +6,36 @@ its branches happen to be split into polylines, so that it gives the same cuts o
 skeleton and on the true skeleton of the same plant:
 
 - **vine**: every tip (the free end of a cane or shoot) is followed back to the permanent wood
-  (the trunk or a cordon); the cut sits `FIRST_NODE + 1.3 * internode` (in a straight line) past where
-  that path leaves the wood's surface: 30% of the way from the second bud to the third, as the generator's
-  and hydroshoot's candidates, with the buds counted from the cordon. Counting from the cordon,
+  (the trunk or a cordon); the cut sits where that path first stands `FIRST_NODE + 1.3 *
+  internode` off the permanent wood's surface (its distance from the trunk's and cordons' axes
+  less their radius): 30% of the way from the second bud to the third, as the generator's and
+  hydroshoot's candidates, with the buds counted from the cordon. Counting from the cordon,
   not from the cane's own base on its spur, is what a scan allows: two canes of one spur touch
   for their first centimetres and a scan cannot tell where they part. On a vine with 2-5 cm
-  spurs the cut sits that much nearer the cordon than counting from the spur. Canes sharing
-  their base give one cut; paths too short for the cut get none;
+  spurs the cut sits that much nearer the cordon than counting from the spur. Measuring off the
+  wood's surface, not from where the path meets the wood's axis, keeps the cut where it is
+  when a skeleton forks a few centimetres early or late. Canes sharing their base give one
+  cut; paths too short for the cut get none;
 - **tree**: each tip is followed back to its **last fork** (where the plant branches), and the cut
-  sits `CANDIDATE_OFFSET` (3 cm, the cylinder importer's) past the parent's surface, heading back
-  each shoot.
+  sits where the path first stands `CANDIDATE_OFFSET` (3 cm, the cylinder importer's) off the
+  surface of the rest of the plant (the branch it grows from, its siblings), heading back each
+  shoot.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
-from scipy.spatial import cKDTree
 
 from vinetwin.frames import Array
 from vinetwin.scan.config import PlantKind
 from vinetwin.twin.importers import CANDIDATE_OFFSET
 from vinetwin.twin.skeleton import (
     FIRST_NODE,
-    PERMANENT,
     BranchKind,
     CutCandidate,
     Skeleton,
     arc_length,
+    standoff,
     tip_paths,
 )
 
@@ -44,16 +45,13 @@ def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[Cut
     Candidates within 1 cm of an earlier one (canes sharing their base) are one."""
     vine = plant == "vine"
     offset = FIRST_NODE + 1.3 * internode if vine else CANDIDATE_OFFSET
-    wood = _permanent_surface(sk) if vine else None
+    wood = standoff(sk, "permanent" if vine else "rest")
     out: list[CutCandidate] = []
-    for P, R, fork_r, branch in tip_paths(sk, "permanent" if vine else "fork"):
+    for P, R, _, branch in tip_paths(sk, "permanent" if vine else "fork"):
         if sk.branches[branch].parent < 0:
             continue  # the trunk's own top
         s = arc_length(P)
-        if wood is not None:  # how far each point stands off the permanent wood's surface
-            reach, want = wood(P), offset
-        else:  # straight-line distance from the fork: a noisy centre line's wiggles lengthen its arc
-            reach, want = np.linalg.norm(P - P[0], axis=1), fork_r + offset
+        reach, want = wood(P), offset  # how far each point stands off the wood it grows from
         reach = np.maximum.accumulate(reach)
         if reach[-1] < want + 0.02:
             continue
@@ -70,28 +68,6 @@ def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[Cut
         out.append(CutCandidate(point, axis, branch=branch, radius=float(np.interp(want, s, R)),
                                 label=f"{sk.branches[branch].label or branch}/cut"))  # fmt: skip
     return out
-
-
-def _permanent_surface(sk: Skeleton) -> Callable[[Array], Array]:
-    """The distance of points from the surface of the plant's permanent wood (trunk and
-    cordons: the distance from their axes less their radius there), from their axes sampled
-    every 2 mm."""
-    A, rA = [], []
-    for b in sk.branches:
-        if b.kind in PERMANENT or b.parent < 0:
-            s = arc_length(b.points)
-            t = np.linspace(0.0, s[-1], max(int(s[-1] / 0.002), 1) + 1)
-            A.append(np.column_stack([np.interp(t, s, b.points[:, d]) for d in range(3)]))
-            rA.append(np.interp(t, s, b.radii))
-    pts, rad = np.vstack(A), np.concatenate(rA)
-    tree = cKDTree(pts)
-
-    def surface(P: Array) -> Array:
-        d, i = tree.query(P, k=min(8, len(pts)))
-        d, i = d.reshape(len(P), -1), i.reshape(len(P), -1)
-        return (d - rad[i]).min(axis=1)
-
-    return surface
 
 
 CORDON_RADIUS = 0.5

@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates
 from vinetwin.scan.config import PlantKind
-from vinetwin.twin.skeleton import Skeleton, arc_length, tip_paths
+from vinetwin.twin.skeleton import Skeleton, resample, tip_paths
 
 #: Tip paths shorter than this (m) are stubs, not canes, for the "canes lost" count.
 MIN_CANE = 0.06
@@ -34,17 +34,10 @@ def sample_skeleton(sk: Skeleton, step: float = 0.002) -> tuple[Array, Array]:
     """Points every `step` along every branch and their radii."""
     pts, rad = [], []
     for b in sk.branches:
-        P, R = _resample(b.points, b.radii, step)
+        P, R = resample(b.points, b.radii, step)
         pts.append(P)
         rad.append(R)
     return np.concatenate(pts), np.concatenate(rad)
-
-
-def _resample(P: Array, R: Array, step: float) -> tuple[Array, Array]:
-    s = arc_length(P)
-    n = max(2, int(np.ceil(s[-1] / step)) + 1)
-    q = np.linspace(0, s[-1], n)
-    return np.column_stack([np.interp(q, s, P[:, d]) for d in range(3)]), np.interp(q, s, R)
 
 
 @dataclass
@@ -94,7 +87,7 @@ def skeleton_accuracy(
     for P, R, _, _ in tip_paths(truth):
         if float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum()) < MIN_CANE:
             continue
-        Q, Rq = _resample(P, R, 0.005)
+        Q, Rq = resample(P, R, 0.005)
         if sp is not None:
             d, _ = sp.query(Q)
             if (d <= Rq + 0.004).mean() < 0.5:

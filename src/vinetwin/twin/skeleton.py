@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -149,6 +150,14 @@ def arc_length(points: Array) -> Array:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
 
 
+def resample(P: Array, R: Array, step: float = 0.002) -> tuple[Array, Array]:
+    """A polyline and its radii at evenly spaced points at most `step` apart (ends kept)."""
+    a = arc_length(P)
+    n = max(2, int(np.ceil(a[-1] / step)) + 1)
+    t = np.linspace(0.0, a[-1], n)
+    return np.column_stack([np.interp(t, a, P[:, d]) for d in range(3)]), np.interp(t, a, R)
+
+
 def nearest_on_polyline(p: Array, pts: Array) -> tuple[int, float, Array]:
     """The point of the polyline `pts` nearest p: its segment k, the fraction t along it, and
     the point (a one-point polyline: segment 0, t 0)."""
@@ -251,6 +260,56 @@ def tip_paths(sk: Skeleton, back_to: str = "fork") -> list[tuple[Array, Array, f
         keep[1:] = np.linalg.norm(np.diff(P, axis=0), axis=1) > 1e-9
         out.append((P[keep], R[keep], fork_r, i))
     return out
+
+
+def _samples(sk: Skeleton, keep: Callable[[int], bool]) -> tuple[Array, Array]:
+    """Points every 2 mm along the axes of the branches `keep` accepts, and their radii."""
+    got = [resample(b.points, b.radii) for i, b in enumerate(sk.branches) if keep(i)]
+    if not got:
+        return np.zeros((0, 3)), np.zeros(0)
+    return np.vstack([p for p, _ in got]), np.concatenate([r for _, r in got])
+
+
+def _surface_distance(pts: Array, rad: Array, P: Array) -> Array:
+    """The distance of `P` from the surface of the wood whose axis samples are `pts` (the
+    distance from an axis less its radius there); infinite without wood."""
+    from scipy.spatial import cKDTree
+
+    if not len(pts):
+        return np.full(len(P), np.inf)
+    d, i = cKDTree(pts).query(P, k=min(8, len(pts)))
+    d, i = d.reshape(len(P), -1), i.reshape(len(P), -1)
+    return (d - rad[i]).min(axis=1)
+
+
+def _permanent_standoff(sk: Skeleton) -> Callable[[Array], Array]:
+    """How far points stand off the surface of the plant's permanent wood (trunk and cordons)."""
+    pts, rad = _samples(sk, lambda i: sk.branches[i].kind in PERMANENT or sk.branches[i].parent < 0)
+    return lambda P: _surface_distance(pts, rad, P)
+
+
+def _rest_standoff(sk: Skeleton) -> Callable[[Array], Array]:
+    """How far a tip's path stands off the surface of the rest of the plant (all wood but the
+    path itself: the branch it forks from, on both sides of the fork, and its siblings)."""
+    pts, rad = _samples(sk, lambda i: True)
+
+    def surface(P: Array) -> Array:
+        from scipy.spatial import cKDTree
+
+        near = np.all((pts > P.min(0) - 0.15) & (pts < P.max(0) + 0.15), axis=1)
+        own = cKDTree(resample(P, np.zeros(len(P)), 0.001)[0]).query(pts[near])[0] < 6e-4
+        idx = np.nonzero(near)[0][~own]
+        return _surface_distance(pts[idx], rad[idx], P)
+
+    return surface
+
+
+def standoff(sk: Skeleton, of: str) -> Callable[[Array], Array]:
+    """How far points stand off the surface of the plant's wood: `of="permanent"`, the trunk and
+    cordons (a vine's shoots are counted from there); `of="rest"`, all wood but the points' own
+    path (a tip's path from its last fork: the branch it grows from and its siblings). Both are
+    shape alone: they do not depend on where a skeleton happens to fork."""
+    return _permanent_standoff(sk) if of == "permanent" else _rest_standoff(sk)
 
 
 # ---------------------------------------------------------------------------- tube meshes
