@@ -23,7 +23,7 @@ from vinetwin.scan.read import detect_units, read_scan
 from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
 from vinetwin.twin.generator import generate_vine
 from vinetwin.twin.model import Twin
-from vinetwin.twin.skeleton import tube_mesh
+from vinetwin.twin.skeleton import Skeleton, tube_mesh
 
 Q = QUALITY_LADDER["realistic"]
 
@@ -331,6 +331,57 @@ def test_the_cut_rule_on_a_vine_built_to_know_the_answer() -> None:
         assert np.allclose(c.point, [x, 0, want], atol=1e-9)
         assert np.allclose(c.cane_axis, [0, 0, 1])
     assert cut_candidates(sk, "vine", 0.35) == []  # canes too short for 2 buds of 35 cm
+
+
+def test_the_cut_rule_does_not_depend_on_where_a_skeleton_forks() -> None:
+    """The same plant skeletonised two ways: a cane (vine) or a lateral (tree) joined to its
+    wood's axis where it leaves it, or 3 cm along with a detour inside the wood (as a scan's
+    level sets fork late). Measured off the wood's surface, its cut does not move."""
+    from vinetwin.twin.skeleton import Branch, Skeleton
+
+    line = np.linspace(0, 1, 60)[:, None]
+
+    def plant(kind_wood: str, detour: bool) -> Skeleton:
+        sk = Skeleton([
+            Branch(np.hstack([0 * line, 0 * line, 0.7 * line]), np.full(60, 0.02), "trunk"),
+            Branch(np.hstack([0.6 * line, 0 * line, 0.7 + 0 * line]), np.full(60, 0.012),
+                   kind_wood, 0),
+        ])  # fmt: skip
+        rise = np.hstack([0.3 + 0 * line, 0 * line, 0.7 + 0.4 * line])
+        if detour:  # joined 3 cm farther along, reaching the cane inside the cordon
+            rise = np.vstack([[0.33, 0, 0.7], [0.30, 0, 0.708], rise[2:]])
+        sk.branches.append(Branch(rise, np.full(len(rise), 0.004), "cane" if kind_wood ==
+                                  "cordon" else "branch", 1))  # fmt: skip
+        return sk
+
+    for plant_kind, wood in (("vine", "cordon"), ("tree", "branch")):
+        a = cut_candidates(plant(wood, False), plant_kind, 0.07)
+        b = cut_candidates(plant(wood, True), plant_kind, 0.07)
+        cut_a = next(c for c in a if c.branch == 2)
+        cut_b = next(c for c in b if c.branch == 2)
+        assert np.linalg.norm(cut_a.point - cut_b.point) < 1e-3, (plant_kind, cut_a, cut_b)
+
+
+def test_a_tree_scanned_without_ground_stands_up_and_its_skeleton_matches(
+    tmp_path: Path,
+) -> None:
+    """The Tree-Models-Library's Y-trellis apple (its fruit left out), scanned at the realistic
+    quality in a scanner's frame with no ground: the up axis is found (its trunk splits into
+    two arms at 45 degrees 0.5 m up), and the skeleton covers the tree."""
+    from vinetwin.twin.importers import read_cylinders
+
+    def truth() -> Skeleton:
+        return read_cylinders(shared("trees", "tree-models-library", "Apple_YTrellisL.txt"))
+
+    V, F = tube_mesh(truth(), edge=0.003, caps="round")
+    P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], 0)
+    T_sv = scanner_frame(0)
+    f = _ply_cloud(tmp_path / "tree.ply", P @ T_sv[:3, :3].T + T_sv[:3, 3])
+    scan = analyse_scan(f, ScanImportConfig(plant="tree"))
+    T = scan.T_vine_scan @ T_sv
+    assert np.degrees(np.arccos(np.clip(T[2, 2], -1, 1))) < 1.0, scan.up_from
+    acc = skeleton_accuracy(scan.skeleton, transform_skeleton(truth(), T), "tree", 0.07)
+    assert acc.completeness >= 0.9 and acc.precision >= 0.9, acc
 
 
 def test_a_level_cane_is_not_a_cordon_and_a_cordon_running_on_into_a_cane_is_split() -> None:

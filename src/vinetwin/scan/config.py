@@ -67,7 +67,8 @@ class SkeletonConfig:
     """Working resolution (m): the scan is thinned to one point per voxel; 0 chooses from the
     point spacing (at least 3 mm)."""
     bin: float = 0.0
-    """Width (m) of the geodesic slices whose clusters become skeleton nodes; 0: 4 voxels."""
+    """Width (m) of the geodesic slices whose clusters become skeleton nodes; 0: 4 voxels for a
+    vine, 3 for a tree (`skeletonize.BIN_VOXELS`)."""
     gap: float = 0.035
     """Largest hole (m) bridged between pieces of the plant (a cane hidden behind another)."""
     min_branch: float = 0.03

@@ -30,15 +30,16 @@ def axis_vector(name: str) -> Array:
 SNAP_DEGREES = 30.0
 
 
-def guess_up(trunk: Array) -> tuple[Array, str]:
-    """The up direction of a scan without ground or `--up`: the trunk's direction found by the
-    skeleton, snapped to the file's nearest axis when within `SNAP_DEGREES`."""
-    best = max(("x", "y", "z", "-x", "-y", "-z"), key=lambda n: float(axis_vector(n) @ trunk))
+def guess_up(found: Array, what: str = "the trunk's direction") -> tuple[Array, str]:
+    """The up direction of a scan without ground or `--up`: the direction the skeleton found
+    (`what`: the trunk's, or the plant's mass over its foot), snapped to the file's nearest axis
+    when within `SNAP_DEGREES`."""
+    best = max(("x", "y", "z", "-x", "-y", "-z"), key=lambda n: float(axis_vector(n) @ found))
     v = axis_vector(best)
-    angle = float(np.degrees(np.arccos(np.clip(v @ trunk, -1, 1))))
+    angle = float(np.degrees(np.arccos(np.clip(v @ found, -1, 1))))
     if angle <= SNAP_DEGREES:
-        return v, f"the trunk's direction ({angle:.0f} degrees from {best}: {best} taken)"
-    return trunk, f"the trunk's direction ({angle:.0f} degrees from the nearest axis, {best})"
+        return v, f"{what} ({angle:.0f} degrees from {best}: {best} taken)"
+    return found, f"{what} ({angle:.0f} degrees from the nearest axis, {best})"
 
 
 def row_axis(sk: Skeleton, up: Array) -> Array:

@@ -99,9 +99,9 @@ def analyse_scan(
         removed_scan["ground"], pts = pts[ground.mask], pts[~ground.mask]
     step("clean")
     if up is None:
-        trunk = skeletonize(pts, config.skeleton, spacing, None).up
-        assert trunk is not None
-        up, up_from = guess_up(trunk)
+        found = skeletonize(pts, config.skeleton, spacing, None, config.plant)
+        assert found.up is not None
+        up, up_from = guess_up(found.up, found.up_from)
     if cl.wires:
         m = find_wires(pts, up, spacing, rng)
         removed_scan["wire"], pts = pts[m], pts[~m]
@@ -111,7 +111,7 @@ def analyse_scan(
     if len(pts) < 100:
         raise ScanError(f"{path}: nothing of a plant is left after cleaning ({len(pts)} points)")
     step("wires and posts")
-    res = skeletonize(pts, config.skeleton, spacing, up)
+    res = skeletonize(pts, config.skeleton, spacing, up, config.plant)
     removed_scan["apart"] = pts[res.stray_mask]
     pts = pts[~res.stray_mask]
     step("skeleton")

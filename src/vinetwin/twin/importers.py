@@ -14,7 +14,7 @@ Formats:
   radius. Consecutive cylinders whose start is the previous one's end form one branch. The
   Tree-Models-Library's files hold the branches, then the fruit (spheres: a vector across the
   fruit and a radius half its length), then the trellis (`TreeRead.m`): a later block of
-  spheres only is fruit, reported in `Skeleton.skipped` and left out.
+  such spheres (at least 90% of its rows) is fruit, reported in `Skeleton.skipped` and left out.
 """
 
 from __future__ import annotations
@@ -347,7 +347,7 @@ def read_cylinders(path: str | Path) -> Skeleton:
         if block and any([r for _, r in block] == [r for _, r in b] for b in blocks):
             skipped.append(f"line {head}: a block of {n} cylinders repeats an earlier block")
             continue
-        if blocks and block and all(_is_sphere(r) for _, r in block):
+        if blocks and block and np.mean([_is_sphere(r) for _, r in block]) >= 0.9:
             skipped.append(f"line {head}: a block of {len(block)} fruit (spheres: each radius "
                            "half its length), not wood")  # fmt: skip
             continue
@@ -399,9 +399,9 @@ def read_cylinders(path: str | Path) -> Skeleton:
 def _is_sphere(row: tuple[float, ...]) -> bool:
     """A Tree-Models-Library fruit: its file's second block (`TreeRead.m`: branches, then fruit,
     then trellis) holds spheres as a start, a vector across the fruit and a radius half its
-    length."""
+    length, rounded in the file to a few per cent (a block of at least 90% such rows is fruit)."""
     length = math.sqrt(row[3] ** 2 + row[4] ** 2 + row[5] ** 2)
-    return length > 0 and abs(row[6] - 0.5 * length) <= 0.02 * row[6]
+    return length > 0 and abs(row[6] - 0.5 * length) <= 0.03 * row[6]
 
 
 #: Where a cylinder tree's cut-point candidate sits on a lateral: this far from its base (m).
