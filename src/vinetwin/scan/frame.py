@@ -9,7 +9,7 @@ import numpy as np
 
 from vinetwin.errors import InputError
 from vinetwin.frames import Array
-from vinetwin.twin.skeleton import Skeleton, arc_length
+from vinetwin.twin.skeleton import Branch, Skeleton, arc_length
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -129,7 +129,6 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
     into the cane or shoot of its last spur); in place. The rest becomes a branch of its own,
     hanging from the cordon's end, appended (the order stays parents-first)."""
     from vinetwin.scan.candidates import CORDON_RADIUS
-    from vinetwin.twin.skeleton import Branch
 
     roots = {i for i, b in enumerate(sk.branches) if b.parent < 0}
     r_ref = CORDON_RADIUS * float(np.median(sk.branches[min(roots)].radii)) if roots else 0.0
@@ -152,17 +151,64 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
             k_split = k_thin
         if k_split is None:
             continue
-        k = k_split
-        rest = Branch(P[k:], b.radii[k:], kind="cane", parent=i, label=f"{b.label}+")
-        sk.branches[i] = Branch(P[: k + 1], b.radii[: k + 1], kind=b.kind, parent=b.parent,
-                                label=b.label)  # fmt: skip
-        new = len(sk.branches)
-        sk.branches.append(rest)
-        for c in sk.branches[:new]:
-            if c.parent == i:
-                j = int(np.argmin(np.linalg.norm(P - c.points[0], axis=1)))
-                if j > k:
-                    c.parent = new
+        _split_at(sk, i, k_split)
+    _continue_cordons(sk, up, roots, r_ref)
+
+
+def _split_at(sk: Skeleton, i: int, k: int) -> None:
+    """Branch i keeps its points up to k; the rest becomes a cane hanging from its end,
+    appended, with the children past k."""
+    b = sk.branches[i]
+    P = b.points
+    rest = Branch(P[k:], b.radii[k:], kind="cane", parent=i, label=f"{b.label}+")
+    sk.branches[i] = Branch(P[: k + 1], b.radii[: k + 1], kind=b.kind, parent=b.parent,
+                            label=b.label)  # fmt: skip
+    new = len(sk.branches)
+    sk.branches.append(rest)
+    for c in sk.branches[:new]:
+        if c.parent == i:
+            j = int(np.argmin(np.linalg.norm(P - c.points[0], axis=1)))
+            if j > k:
+                c.parent = new
+
+
+def _level_and_thick(b: Branch, up: Array, r_ref: float) -> bool:
+    """At least 15 cm long, its median radius at least `r_ref`, and level (its principal axis
+    within 30 degrees of horizontal): a cordon's shape."""
+    if b.length < 0.15 or float(np.median(b.radii)) < r_ref:
+        return False
+    Q = b.points - b.points.mean(0)
+    return abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up)) < 0.5
+
+
+CONTINUE_WITHIN = 0.10
+"""How near a cordon's end (m) a branch must start to be taken for its continuation."""
+
+
+def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) -> None:
+    """Where a cordon forks at its end, the skeleton's chain may run on into a shoot hanging
+    from it while the cordon itself goes on as a branch of that shoot (measured on the GDC
+    vine: its right cordon's last 30 cm). A branch starting within `CONTINUE_WITHIN` of a cordon's end whose
+    thick part is a cordon's shape continues it: it hangs from the cordon, split where it
+    thins for good. Repeated from each new piece; in place, parents first."""
+    queue = [i for i, b in enumerate(sk.branches)
+             if b.parent in roots and _level_and_thick(b, up, r_ref)]  # fmt: skip
+    done = set(queue) | roots
+    while queue:
+        c = queue.pop()
+        end = sk.branches[c].points[-1]
+        for j in range(c + 1, len(sk.branches)):
+            b = sk.branches[j]
+            if j in done or float(np.linalg.norm(b.points[0] - end)) > CONTINUE_WITHIN:
+                continue
+            k = _thin_from(arc_length(b.points), b.radii, r_ref)
+            if k is not None:
+                _split_at(sk, j, k)
+            if not _level_and_thick(sk.branches[j], up, r_ref):
+                continue
+            sk.branches[j].parent = c
+            done.add(j)
+            queue.append(j)
 
 
 def _thin_from(s: Array, r: Array, r_ref: float, window: float = 0.03) -> int | None:
