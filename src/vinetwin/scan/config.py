@@ -94,7 +94,8 @@ class ScanImportConfig:
     scanned without ground, see docs/scans.md)."""
     plant: PlantKind = "vine"
     """vine: trunk, cordons, spurs, canes; a cut candidate where each cane would be shortened to
-    a two-bud spur. tree: a trunk and branches; a candidate 3 cm up each shoot from its fork."""
+    a two-bud spur. tree: a trunk and branches; a candidate where each shoot stands 3 cm off
+    the wood it grows from."""
     mesh: MeshSource = "tubes"
     """The twin's mesh: tubes around the skeleton, or the scan's own mesh (a mesh file only)."""
     edge: float = 0.003
