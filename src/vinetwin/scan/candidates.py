@@ -51,8 +51,8 @@ def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[Cut
         if sk.branches[branch].parent < 0:
             continue  # the trunk's own top
         s = arc_length(P)
-        reach, want = wood(P), offset  # how far each point stands off the wood it grows from
-        reach = np.maximum.accumulate(reach)
+        reach = np.maximum.accumulate(wood(P))  # how far it stands off the wood it grows from
+        want = offset
         if reach[-1] < want + 0.02:
             continue
         k = int(np.clip(np.searchsorted(reach, want), 1, len(P) - 1))

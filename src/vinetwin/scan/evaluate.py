@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates
 from vinetwin.scan.config import PlantKind
-from vinetwin.twin.skeleton import Skeleton, resample, tip_paths
+from vinetwin.twin.skeleton import Skeleton, axis_samples, resample, tip_paths
 
 #: Tip paths shorter than this (m) are stubs, not canes, for the "canes lost" count.
 MIN_CANE = 0.06
@@ -32,12 +32,7 @@ MIN_CANE = 0.06
 
 def sample_skeleton(sk: Skeleton, step: float = 0.002) -> tuple[Array, Array]:
     """Points every `step` along every branch and their radii."""
-    pts, rad = [], []
-    for b in sk.branches:
-        P, R = resample(b.points, b.radii, step)
-        pts.append(P)
-        rad.append(R)
-    return np.concatenate(pts), np.concatenate(rad)
+    return axis_samples(sk, step=step)
 
 
 @dataclass

@@ -102,7 +102,7 @@ def analyse_scan(
         found = skeletonize(pts, config.skeleton, spacing, None, config.plant)
         assert found.up is not None
         up, up_from = guess_up(found.up, found.up_from)
-        if "not trusted" in found.up_from:
+        if not found.up_trusted:
             notes.append("the up axis is uncertain: the trunk's direction and the plant's mass "
                          "over its foot disagree; look at the report's picture, or name --up "
                          "(or scan the ground)")  # fmt: skip

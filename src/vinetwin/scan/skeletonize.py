@@ -52,6 +52,8 @@ class SkeletonResult:
     up: Array | None = None
     """The plant's up direction found from its shape (when the up axis was not given)."""
     up_from: str = ""
+    up_trusted: bool = True
+    """False when the trunk's direction did not confirm `up` (found or not)."""
     """What `up` was found from."""
 
 
@@ -186,7 +188,7 @@ def skeletonize(
     remap[idx] = np.arange(len(idx))
     inv = remap[inv]
     stray_mask = inv < 0
-    found_up, up_from = None, ""
+    found_up, up_from, up_trusted = None, "", True
     if up is not None:
         h = P @ up
         sources = np.flatnonzero(h <= h.min() + 0.02)
@@ -198,12 +200,12 @@ def skeletonize(
         tree = _level_tree(P, g, np.array([far]), binw, points, inv, cfg, voxel)
         root_pts = tree.thickest_end_points()
         tree = _level_tree(P, g, root_pts, binw, points, inv, cfg, voxel)
-        found_up, up_from = tree.up_direction()
+        found_up, up_from, up_trusted = tree.up_direction()
     sk = tree.skeleton()
     if not sk.branches:
         raise ScanError("no skeleton could be found: the scan holds no branching plant")
     return SkeletonResult(sk, voxel, binw, int(stray_mask.sum()), bridges, stray_mask, found_up,
-                          up_from)  # fmt: skip
+                          up_from, up_trusted)  # fmt: skip
 
 
 class _LevelTree:
@@ -293,13 +295,16 @@ class _LevelTree:
         assert best is not None
         return self.members[best]
 
-    def root_direction(self) -> Array:
+    def _root_chain(self) -> list[int]:
+        return next(c for c, p in self.chains() if p < 0)
+
+    def root_direction(self, chain: list[int] | None = None) -> Array:
         """The trunk's direction: the principal axis of the root chain's centres from 2 cm above
         its foot up to where its heading over 10 cm turns by 30 degrees from its first 10 cm's
         (at most 0.6 m; a Y-trellis' arms leave at 45), pointing away from the foot. Positions
         along it are the slices' geodesic distances, not the centres' own path, which zigzags
         where a thick trunk's thin slices are seen from two sides."""
-        chain = next(c for c, p in self.chains() if p < 0)
+        chain = chain or self._root_chain()
         C = self.centre[chain]
         g = self.geo_min[chain] - self.geo_min[chain[0]]
 
@@ -322,25 +327,26 @@ class _LevelTree:
         ax = np.linalg.eigh(np.cov((Q - Q.mean(0)).T))[1][:, -1]
         return ax if ax @ (Q[-1] - Q[0]) > 0 else -ax
 
-    def up_direction(self) -> tuple[Array, str]:
-        """The plant's up direction, and what it was found from: the trunk's direction
+    def up_direction(self) -> tuple[Array, str, bool]:
+        """The plant's up direction, what it was found from, and whether the trunk confirmed
+        it: the trunk's direction
         (`root_direction`) when it lies within `TRUST_TRUNK` degrees of the direction from the
         foot to the plant's mass (the mean of its voxels: a plant stands over its foot); else
         that direction (a short, thick trunk's slices zigzag and its own direction is not
         trusted: on the Tree-Models-Library's nectarine the trunk gave 46-64 degrees off, the
         mass 13-15)."""
-        chain = next(c for c, p in self.chains() if p < 0)
+        chain = self._root_chain()
         mass = self.P.mean(0) - self.centre[chain[0]]
         mass /= max(float(np.linalg.norm(mass)), 1e-12)
         try:
-            trunk = self.root_direction()
+            trunk = self.root_direction(chain)
         except ScanError:
-            return mass, "the plant's mass over its foot (the trunk's direction not found)"
+            return mass, "the plant's mass over its foot (the trunk's direction not found)", False
         off = float(np.degrees(np.arccos(np.clip(trunk @ mass, -1.0, 1.0))))
         if off <= TRUST_TRUNK:
-            return trunk, "the trunk's direction"
+            return trunk, "the trunk's direction", True
         return mass, (f"the plant's mass over its foot (the trunk's direction, {off:.0f} degrees "
-                      "from it, not trusted)")  # fmt: skip
+                      "from it, not trusted)"), False  # fmt: skip
 
     def skeleton(self) -> Skeleton:
         sk = Skeleton()

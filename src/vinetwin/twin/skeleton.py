@@ -262,36 +262,46 @@ def tip_paths(sk: Skeleton, back_to: str = "fork") -> list[tuple[Array, Array, f
     return out
 
 
-def _samples(sk: Skeleton, keep: Callable[[int], bool]) -> tuple[Array, Array]:
-    """Points every 2 mm along the axes of the branches `keep` accepts, and their radii."""
-    got = [resample(b.points, b.radii) for i, b in enumerate(sk.branches) if keep(i)]
+def axis_samples(
+    sk: Skeleton, keep: Callable[[int], bool] | None = None, step: float = 0.002
+) -> tuple[Array, Array]:
+    """Points every `step` along the axes of the branches `keep` accepts (all by default), and
+    their radii."""
+    got = [resample(b.points, b.radii, step) for i, b in enumerate(sk.branches)
+           if keep is None or keep(i)]  # fmt: skip
     if not got:
         return np.zeros((0, 3)), np.zeros(0)
     return np.vstack([p for p, _ in got]), np.concatenate([r for _, r in got])
 
 
-def _surface_distance(pts: Array, rad: Array, P: Array) -> Array:
+def _surface_distance(pts: Array, rad: Array, P: Array, tree: Any = None) -> Array:
     """The distance of `P` from the surface of the wood whose axis samples are `pts` (the
-    distance from an axis less its radius there); infinite without wood."""
+    distance from an axis less its radius there; `tree`: their k-d tree, when built already);
+    infinite without wood."""
     from scipy.spatial import cKDTree
 
     if not len(pts):
         return np.full(len(P), np.inf)
-    d, i = cKDTree(pts).query(P, k=min(8, len(pts)))
+    d, i = (tree or cKDTree(pts)).query(P, k=min(8, len(pts)))
     d, i = d.reshape(len(P), -1), i.reshape(len(P), -1)
     return (d - rad[i]).min(axis=1)
 
 
 def _permanent_standoff(sk: Skeleton) -> Callable[[Array], Array]:
     """How far points stand off the surface of the plant's permanent wood (trunk and cordons)."""
-    pts, rad = _samples(sk, lambda i: sk.branches[i].kind in PERMANENT or sk.branches[i].parent < 0)
-    return lambda P: _surface_distance(pts, rad, P)
+    from scipy.spatial import cKDTree
+
+    pts, rad = axis_samples(
+        sk, lambda i: sk.branches[i].kind in PERMANENT or sk.branches[i].parent < 0
+    )
+    tree = cKDTree(pts) if len(pts) else None  # one tree for every path
+    return lambda P: _surface_distance(pts, rad, P, tree)
 
 
 def _rest_standoff(sk: Skeleton) -> Callable[[Array], Array]:
     """How far a tip's path stands off the surface of the rest of the plant (all wood but the
     path itself: the branch it forks from, on both sides of the fork, and its siblings)."""
-    pts, rad = _samples(sk, lambda i: True)
+    pts, rad = axis_samples(sk)
 
     def surface(P: Array) -> Array:
         from scipy.spatial import cKDTree
