@@ -372,6 +372,25 @@ def test_a_diverged_result_is_not_converged(vine_views: VineViews) -> None:
     assert ok.converged and ok.coverage > 0.9 and ok.overlap > 0.9
 
 
+def test_coverage_counts_what_the_current_camera_has_in_view(vine_views: VineViews) -> None:
+    """A camera nearer the vine than its goal, and turned from it, sees part of the reference's
+    view: at the right alignment coverage counts the reference points in its view (most of them
+    paired), not the whole reference (which its narrower view cannot cover). Without a camera
+    the ICP cannot tell, and counts every reference point."""
+    twin = vine_views.twin
+    pose = twin.poses[0]
+    ref = vine_views.reference(pose.id)
+    D = fr.make_pose(fr.so3_exp([0.0, 0.15, 0.0]), [0.03, 0.0, 0.06])
+    cur = vine_views.cloud(pose.T_vine_camera @ D, 5)
+    cfg = ICPConfig(variant="point_to_plane", crop_margin=0.0)
+    r = ICP(ref, cfg, camera=twin.camera, max_depth=0.4).align(cur, D)
+    assert r.converged, r.reason
+    assert fr.pose_error(r.T_ref_cur, D)[0] < 0.002
+    blind = ICP(ref, cfg).align(cur, D)  # the same alignment, every reference point counted
+    assert fr.pose_error(blind.T_ref_cur, r.T_ref_cur)[0] < 1e-3
+    assert blind.coverage < 0.6 * r.coverage and r.coverage > 0.7, (blind.coverage, r.coverage)
+
+
 def _tripod(rng: np.random.Generator) -> np.ndarray:
     """Points on three perpendicular arms of 12, 7 and 4 cm, 0.3 m ahead: no symmetry."""
     arms = np.diag([0.12, 0.07, 0.04])
