@@ -364,6 +364,13 @@ def test_a_field_twin_that_missed_the_pose_is_refused_by_name() -> None:
     check_field_twin_view(both, here, cam, FieldProfile(), "p1", T)
     with pytest.raises(VinetwinError, match=r"0% .* pose 'p1'.*\"twin_trajectory\": \"poses\""):
         check_field_twin_view(both, elsewhere, cam, FieldProfile(), "p1", T)
+    # a rebuilt twin that holds only the wall behind the vine: pixels, but none a reference
+    # keeps (the perception drops depth beyond max_depth)
+    wall = trimesh.creation.box((2.0, 2.0, 0.01), fr.make_pose(t=[0, 0, 0.6]))
+    assert view_coverage(here, wall, cam, T) >= 1.0  # more pixels than the vine shows
+    assert view_coverage(here, wall, cam, T, max_depth=0.4) == 0.0
+    with pytest.raises(VinetwinError, match=r"0% .* pose 'p1'"):
+        check_field_twin_view(here, wall, cam, FieldProfile(), "p1", T, max_depth=0.4)
 
 
 def test_validate_refuses_a_pose_its_field_twin_does_not_show(

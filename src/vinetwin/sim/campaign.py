@@ -120,8 +120,9 @@ def plan(twin: Twin, cfg: CampaignConfig, cache: Path | None = None) -> list[_Jo
 
         mesh, _ = reconstructed_twin(twin, profile, cfg.seed, cache or twin.root / "field_twins")
         check_field_twin_view(
-            twin.load_mesh(), load_mesh(mesh), twin.camera, profile, pose.id, goal
-        )
+            twin.load_mesh(), load_mesh(mesh), twin.camera, profile, pose.id, goal,
+            twin.perception.max_depth,
+        )  # fmt: skip
         rebuilt = {"mesh_path": str(mesh), "mesh_sha256": file_sha256(mesh)}
     robot = None if cfg.sim == "kinematic" else cfg.robot
     starts = []

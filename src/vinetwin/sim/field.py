@@ -136,15 +136,24 @@ MIN_VIEW_COVERAGE = 0.1
 
 
 def view_coverage(
-    true_mesh: Any, rebuilt_mesh: Any, camera: CameraModel, T_vine_camera: Any
+    true_mesh: Any,
+    rebuilt_mesh: Any,
+    camera: CameraModel,
+    T_vine_camera: Any,
+    max_depth: float = float("inf"),
 ) -> float:
-    """The rebuilt mesh's valid depth pixels at the view over the true mesh's (Open3D ray
-    casting at a quarter of the resolution; 1.0 when the true mesh shows nothing either)."""
-    return view_coverages(true_mesh, rebuilt_mesh, camera, [T_vine_camera])[0]
+    """The rebuilt mesh's valid depth pixels at the view over the true mesh's, each counted
+    within `max_depth` (the perception's: farther pixels never reach a reference cloud; Open3D
+    ray casting at a quarter of the resolution; 1.0 when the true mesh shows nothing either)."""
+    return view_coverages(true_mesh, rebuilt_mesh, camera, [T_vine_camera], max_depth)[0]
 
 
 def view_coverages(
-    true_mesh: Any, rebuilt_mesh: Any, camera: CameraModel, views: Sequence[Any]
+    true_mesh: Any,
+    rebuilt_mesh: Any,
+    camera: CameraModel,
+    views: Sequence[Any],
+    max_depth: float = float("inf"),
 ) -> list[float]:
     """`view_coverage` at each of `views`, each mesh's ray caster built once."""
     from vinetwin.render.backends import raycaster
@@ -154,7 +163,8 @@ def view_coverages(
     for m in (true_mesh, rebuilt_mesh):
         backend = raycaster(m.vertices, m.faces, small)
         try:
-            counts.append([int((backend.render(np.asarray(T)) > 0).sum()) for T in views])
+            depths = (backend.render(np.asarray(T)) for T in views)
+            counts.append([int(((d > 0) & (d <= max_depth)).sum()) for d in depths])
         finally:
             backend.close()
     return [1.0 if a == 0 else b / a for a, b in zip(*counts, strict=True)]
@@ -185,11 +195,13 @@ def check_field_twin_view(
     profile: FieldProfile,
     pose_id: str,
     T_vine_camera: Any,
+    max_depth: float = float("inf"),
 ) -> None:
-    """Refuses a rebuilt twin that missed the pose's part of the vine (a capture swept over the
-    whole vine from one side can miss a large vine's poses): every run from it would otherwise
-    stop "lost the vine" on an empty reference."""
-    share = view_coverage(true_mesh, rebuilt_mesh, camera, T_vine_camera)
+    """Refuses a rebuilt twin that missed the pose's part of the vine within `max_depth` (a
+    capture swept over the whole vine from one side can miss a large vine's poses, or rebuild
+    only what lies behind them): every run from it would otherwise stop "lost the vine" on an
+    empty reference."""
+    share = view_coverage(true_mesh, rebuilt_mesh, camera, T_vine_camera, max_depth)
     problem = field_twin_view_problem(share, profile, pose_id)
     if problem:
         raise VinetwinError(problem)

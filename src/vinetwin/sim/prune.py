@@ -168,7 +168,8 @@ class _Job:
             self.reference_backend = raycaster(rm.vertices, rm.faces, twin.camera)
             # a pose the rebuilt twin missed is skipped by name, as `vinetwin validate` refuses
             # it: its reference would be empty and the servo would lose the vine
-            shares = view_coverages(true, rm, twin.camera, [p.T_vine_camera for p in twin.poses])
+            views = [p.T_vine_camera for p in twin.poses]
+            shares = view_coverages(true, rm, twin.camera, views, twin.perception.max_depth)
             for p, share in zip(twin.poses, shares, strict=True):
                 problem = field_twin_view_problem(share, self.profile, p.id)
                 if problem:

@@ -279,8 +279,9 @@ def servo_session(
         path, _ = reconstructed_twin(twin, spec.config.profile, cfg.seed, twin.root / "field_twins")
         robot_mesh = load_mesh(path)
         check_field_twin_view(
-            mesh, robot_mesh, twin.camera, spec.config.profile, pose.id, spec.goal
-        )
+            mesh, robot_mesh, twin.camera, spec.config.profile, pose.id, spec.goal,
+            twin.perception.max_depth,
+        )  # fmt: skip
         rebuilt = raycaster(robot_mesh.vertices, robot_mesh.faces, twin.camera)
         try:
             reference = reference_for(

@@ -251,7 +251,8 @@ def _plan(twin: Twin, cfg: ValidateConfig) -> tuple[Twin, list[_Group], dict[tup
 
             try:
                 if world is None:
-                    check_field_twin_view(true_mesh, rebuilt_mesh, twin.camera, profile, pid, goal)
+                    check_field_twin_view(true_mesh, rebuilt_mesh, twin.camera, profile, pid,
+                                          goal, twin.perception.max_depth)  # fmt: skip
                 else:
                     _check_world_view(true_mesh, rebuilt_mesh, twin, pid, goal, world)
             except VinetwinError as exc:
@@ -302,8 +303,9 @@ def _check_world_view(world_mesh: Any, twin_mesh: Any, twin: Twin, pid: str, goa
     from vinetwin.errors import VinetwinError
     from vinetwin.sim.field import MIN_VIEW_COVERAGE, view_coverage
 
-    twin_share = view_coverage(world_mesh, twin_mesh, twin.camera, goal)
-    world_share = view_coverage(twin_mesh, world_mesh, twin.camera, goal)
+    far = twin.perception.max_depth
+    twin_share = view_coverage(world_mesh, twin_mesh, twin.camera, goal, far)
+    world_share = view_coverage(twin_mesh, world_mesh, twin.camera, goal, far)
     if min(twin_share, world_share) < MIN_VIEW_COVERAGE:
         raise VinetwinError(
             f"the twin shows {100 * twin_share:.0f}% of what the world {world} shows at pose "
