@@ -11,7 +11,7 @@ import pytest
 from tests.conftest import VineViews
 from vinetwin import frames as fr
 from vinetwin.cloud import Cloud
-from vinetwin.registration.icp import ICPConfig
+from vinetwin.registration.icp import ICPConfig, ICPResult
 from vinetwin.servo.pbvs import Limits, kinematic_guess, pbvs_twist
 from vinetwin.servo.step import SafetyConfig, Servo
 
@@ -340,6 +340,61 @@ def test_the_first_estimate_must_lie_near_the_believed_pose(
     r = s.step(seen_from(ref, np.eye(4)), 0.0)
     assert not r.trusted and "implausible first estimate" in r.reason, r.reason
     assert np.array_equal(r.twist, np.zeros(6))
+
+
+class _SettledICP:
+    """An ICP that always ends at `T`, pairing `overlap` of the frame: one settled in a basin
+    beside the right pose (as from a 5 cm / 0.15 rad start on a rebuilt twin)."""
+
+    def __init__(self, T: np.ndarray, overlap: float) -> None:
+        self.T, self.overlap = T, overlap
+
+    def align(self, cloud: Cloud, guess: np.ndarray) -> ICPResult:
+        return ICPResult(self.T.copy(), True, overlap=self.overlap, coverage=self.overlap,
+                         inlier_rmse=0.0015, correspondences=500)  # fmt: skip
+
+
+def test_a_poor_fit_with_a_better_pose_elsewhere_is_refused_then_the_better_one_trusted(
+    ref: Cloud, vine_views: VineViews
+) -> None:
+    """ICP settled 3 cm / 0.05 rad off, pairing half the frame: the wide search around it finds
+    the true pose pairing nearly all of it, so the servo stops ("ambiguous alignment", zero
+    twist) until `reacquire_frames` frames agree, then trusts the true pose within 1 mm. Without
+    the doubt (`doubt_overlap` 0) the wrong pose is trusted and moves the arm."""
+    wrong = fr.make_pose(fr.so3_exp([0.0, 0.05, 0.0]), [0.03, 0.0, 0.0])
+    frame = seen_from(ref, np.eye(4))
+    s = servo(ref, vine_views, search_after=10.0)
+    s.icp = _SettledICP(wrong, 0.5)  # type: ignore[assignment]
+    s.reset(fr.make_pose(t=[0.01, 0.0, 0.0]))
+    need = s.safety.reacquire_frames
+    out = [s.step(frame, k / 30) for k in range(need)]
+    for r in out[:-1]:
+        assert not r.trusted and r.reason.startswith("ambiguous alignment"), r.reason
+        assert np.array_equal(r.twist, np.zeros(6))
+    last = out[-1]
+    assert last.trusted and last.reacquired, last.reason
+    assert last.T_ref_cur is not None
+    et, er = fr.pose_error(last.T_ref_cur, np.eye(4))
+    assert et < 0.001 and er < 0.005, (et, er)
+
+    naive = servo(ref, vine_views, search_after=10.0, doubt_overlap=0.0)
+    naive.icp = _SettledICP(wrong, 0.5)  # type: ignore[assignment]
+    naive.reset(fr.make_pose(t=[0.01, 0.0, 0.0]))
+    r = naive.step(frame, 0.0)
+    assert r.trusted and r.T_ref_cur is not None
+    assert fr.pose_error(r.T_ref_cur, wrong)[0] < 1e-9
+
+
+def test_a_poor_fit_with_nothing_better_elsewhere_stays_trusted(
+    ref: Cloud, vine_views: VineViews
+) -> None:
+    """A low overlap alone refuses nothing: the wide search finds the same pose (within the
+    pose-jump limits), so the estimate is trusted at once."""
+    s = servo(ref, vine_views, search_after=10.0)
+    s.icp = _SettledICP(np.eye(4), 0.5)  # type: ignore[assignment]
+    r = s.step(seen_from(ref, np.eye(4)), 0.0)
+    assert r.trusted and not r.reacquired, r.reason
+    assert "doubt" in r.timings
 
 
 def test_wide_search_finds_a_far_pose_and_names_an_ambiguous_one(ref: Cloud) -> None:

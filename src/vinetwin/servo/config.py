@@ -207,6 +207,18 @@ class SafetyConfig(JsonFields):
     """After refusals for this long (s, by frame stamps) without a trusted frame the servo stops
     for good with the named reason "lost the vine" (the loop ends; `Servo.reset` starts again).
     0: never."""
+    doubt_overlap: float = 0.7
+    """A trusted alignment pairing less than this share of the frame (`ICPResult.overlap`) is
+    doubted: the wide search looks around it, on the first trusted frame and then every
+    `doubt_every` s while the overlap stays low, for a pose that pairs clearly more (ICP settled
+    in a basin beside the right one, fitting part of the canes: from a 5 cm / 0.15 rad start on
+    a rebuilt twin, 50-60% paired where the right pose pairs 75-90%). 0: never."""
+    doubt_margin: float = 0.15
+    """A pose of the wide search pairing at least this much more than the estimate, beyond the
+    pose-jump limits from it, makes the estimate untrusted ("ambiguous alignment": zero
+    twist); that pose is trusted once `reacquire_frames` consecutive frames find it."""
+    doubt_every: float = 0.5
+    """s between two looks while the overlap stays low (each costs a wide search)."""
     track_translation: float = 0.003
     """Steady tracking (the last frame trusted): ICP first runs only its final level from the
     prediction, and that answer is used, without the wider levels, when it is trusted, moved
@@ -234,6 +246,11 @@ class SafetyConfig(JsonFields):
         check_at_most(self, {"max_frame_age": ENVELOPE.max_stop_time}, "s (a stop switched off)")
         if self.jump_fraction > 1.0:  # (an overlap above 1 only refuses more: allowed)
             raise InputError(f"jump_fraction must lie in [0, 1], got {self.jump_fraction}")
+        for name in ("doubt_overlap", "doubt_margin"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise InputError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
+        if self.doubt_every < 0:
+            raise InputError(f"doubt_every must be >= 0, got {self.doubt_every}")
         for name in ("min_correspondences", "reacquire_frames"):
             if getattr(self, name) < 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")

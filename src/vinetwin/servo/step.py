@@ -21,6 +21,9 @@ structures). `Servo.step(cloud, stamp, T_base_camera)` then, per frame:
    seen in `reacquire_frames` consecutive frames (the vine itself moved: the servo re-acquires);
    before the first trusted frame, the estimate must lie within `max_guess_translation` /
    `max_guess_rotation` of the believed pose;
+   a trusted estimate pairing under `doubt_overlap` of the frame is looked at again by the
+   wide search (step 5) around it: a pose elsewhere pairing clearly more ("ambiguous
+   alignment") refuses the frame until `reacquire_frames` frames find that pose;
 5. after refusals for `search_after` s, also runs the wide search (`registration.search`:
    coarse-to-fine from several hypotheses around the prediction) and trusts its pose once
    `reacquire_frames` consecutive frames agree on it and no other hypothesis fits as well;
@@ -166,6 +169,8 @@ class Servo:
         self._streak_since: float | None = None
         self._jumps: list[Array] = []
         self._found: list[Array] = []
+        self._doubt_stamp = -math.inf
+        self._doubts: list[Array] = []
 
     @property
     def initial_guess(self) -> Array:
@@ -309,6 +314,13 @@ class Servo:
                     reason = f"{reason}; wide search: {why}"
                 else:
                     r, reason, reacquired = found, "", True
+        if not reason and not reacquired:
+            t0 = time.perf_counter()
+            found, reason = self._doubt(r, cloud, base, stamp)
+            if self._doubt_stamp == stamp:  # the wide search looked
+                timings["doubt"] = time.perf_counter() - t0
+            if found is not None and found is not r:
+                r, reacquired = found, True
         if reason:
             out = self._refuse(reason, stamp)
             if not out.lost:
@@ -483,6 +495,60 @@ class Servo:
         if len(self._found) < need:
             return None, f"found a pose in {len(self._found)} of the {need} frames it needs"
         return res.best, ""
+
+    def _doubt(
+        self, r: ICPResult, cloud: Cloud, base: Array | None, stamp: float
+    ) -> tuple[ICPResult | None, str]:
+        """A trusted alignment that pairs little of the frame, looked at again (`doubt_overlap`):
+        the wide search around it, then, once it found a pose elsewhere pairing clearly more,
+        the final ICP level from that pose on each frame. Returns `r` and "" when nothing fits
+        clearly better; None and the reason while the better pose waits for its
+        `reacquire_frames` agreeing frames; that pose once they agree."""
+        s = self.safety
+        if s.doubt_overlap <= 0 or r.overlap >= s.doubt_overlap:
+            self._doubts.clear()
+            return r, ""
+        if not (self._trusted_T is None or self._doubts) and stamp - self._doubt_stamp < (
+            s.doubt_every
+        ):
+            return r, ""
+        self._doubt_stamp = stamp
+        if self._doubts:  # the better pose, where the robot's motion since puts it
+            last = self._doubts[-1]
+            better: ICPResult | None = self._tight_icp().align(
+                cloud, last if base is None else invert(last) @ base
+            )
+            why = "" if better is not None and better.converged else "lost"
+        else:
+            res = self._searcher().align(
+                cloud, r.T_ref_cur, translation=s.search_translation,
+                rotation=s.search_rotation, accept=self._untrusted,
+            )  # fmt: skip
+            better, why = res.best, res.reason
+        if better is None or why or self._untrusted(better):
+            self._doubts.clear()
+            return r, ""
+        dt, dr = pose_error(better.T_ref_cur, r.T_ref_cur)
+        if better.overlap < r.overlap + s.doubt_margin or (
+            dt <= s.max_jump_translation and dr <= s.max_jump_rotation
+        ):
+            self._doubts.clear()
+            return r, ""
+        implied = better.T_ref_cur if base is None else base @ invert(better.T_ref_cur)
+        if self._doubts:
+            jt, jr = pose_error(self._doubts[-1], implied)
+            if jt > s.reacquire_translation or jr > s.reacquire_rotation:
+                self._doubts.clear()
+        self._doubts.append(implied)
+        need = max(s.reacquire_frames, 1)
+        if len(self._doubts) >= need:
+            self._doubts.clear()
+            return better, ""
+        return None, (
+            f"ambiguous alignment: a pose {1000 * dt:.1f} mm / {math.degrees(dr):.2f} deg from "
+            f"the estimate pairs {100 * better.overlap:.0f}% of the frame, the estimate "
+            f"{100 * r.overlap:.0f}% (found in {len(self._doubts)} of the {need} frames it needs)"
+        )
 
     def _lost_now(self, stamp: float) -> bool:
         """True when this refusal ends a streak of `lost_after` s."""
