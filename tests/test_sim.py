@@ -187,6 +187,34 @@ def test_validate_writes_the_map_and_resumes(sample_twin_dir: Path, tmp_path: Pa
     assert (root / "validation" / "p1.symmetric.json").stat().st_mtime_ns != mtime
 
 
+def test_stored_runs_depend_on_the_servos_own_settings(
+    sample_twin_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A vinetwin whose servo decides differently (another `SafetyConfig` default) gives the
+    validation's and the campaign's stored runs another digest: they run again instead of
+    returning the older servo's results."""
+    from dataclasses import dataclass
+
+    from vinetwin.servo import config as servo_config
+    from vinetwin.sim.config import ValidateConfig, servo_settings
+    from vinetwin.sim.validate import _digest
+    from vinetwin.twin import Twin
+
+    twin = Twin.load(sample_twin_dir)
+    cfg = ValidateConfig(variants=("symmetric",), poses=("p1",), starts=2)
+    before = _digest(twin, "m", "p1", "symmetric", cfg), servo_settings("symmetric")
+    assert before[1]["safety"]["doubt_overlap"] == servo_config.SafetyConfig().doubt_overlap
+    assert before[1]["icp"]["variant"] == "symmetric"
+
+    @dataclass(frozen=True, kw_only=True)
+    class Other(servo_config.SafetyConfig):
+        doubt_overlap: float = 0.0
+
+    monkeypatch.setattr(servo_config, "SafetyConfig", Other)
+    assert _digest(twin, "m", "p1", "symmetric", cfg) != before[0]
+    assert servo_settings("symmetric") != before[1]
+
+
 def test_validate_against_a_world_counts_the_twins_own_error(
     sample_twin_dir: Path, tmp_path: Path
 ) -> None:

@@ -33,7 +33,14 @@ from vinetwin.files import atomic_write_json, json_sha256, remove_orphan_temp_fi
 from vinetwin.jobstore import JobStore
 from vinetwin.render.reference import pose_seed
 from vinetwin.sim import report
-from vinetwin.sim.config import CampaignConfig, Disturbance, FaultConfig, FieldProfile, SimConfig
+from vinetwin.sim.config import (
+    CampaignConfig,
+    Disturbance,
+    FaultConfig,
+    FieldProfile,
+    SimConfig,
+    servo_settings,
+)
 from vinetwin.sim.paper import PRESETS
 from vinetwin.sim.session import SimSpec, start_pose
 from vinetwin.sim.simulate import SimRun, simulate
@@ -70,6 +77,7 @@ class _Job:
             "spec": self.spec.to_dict(),
             "context": {k: v for k, v in self.context.items() if k != "mesh_path"},
             "reference": {k: v for k, v in self.reference.items() if k != "mesh_path"},
+            "servo": servo_settings(self.spec.config.variant),
             "format": CAMPAIGN_FORMAT,
         }
         return json_sha256(data)

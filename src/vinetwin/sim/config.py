@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal, get_args
+from typing import TYPE_CHECKING, Any, Literal, get_args
 
 from vinetwin._config import JsonFields, check_at_most, check_counts, check_finite
 from vinetwin.errors import InputError
@@ -273,6 +273,22 @@ class SimConfig(ServoConfig):
                             "registration_error_rotation"))  # fmt: skip
         check_counts(self, ("seed",))
         check_at_most(self, {"duration": MAX_DURATION}, "s (the longest simulated run)")
+
+
+def servo_settings(variant: str) -> dict[str, Any]:
+    """The servo's own settings a simulated run uses beyond its config (`SafetyConfig` and the
+    variant's `ICPConfig`, their defaults): part of what a stored run's result depends on
+    (`validate`'s and the campaign's digests), so that a vinetwin whose servo decides
+    differently runs it again instead of reusing the older result."""
+    from dataclasses import asdict
+
+    from vinetwin.registration.icp import ICPConfig
+    from vinetwin.servo import config as servo_config
+
+    return {
+        "safety": servo_config.SafetyConfig().to_dict(),
+        "icp": asdict(ICPConfig(variant=variant)),
+    }
 
 
 def _check_variants(variants: tuple[str, ...]) -> None:

@@ -34,7 +34,7 @@ from vinetwin.files import (
 )
 from vinetwin.jobstore import JobStore
 from vinetwin.render.reference import pose_seed
-from vinetwin.sim.config import FaultConfig, SimConfig, ValidateConfig
+from vinetwin.sim.config import FaultConfig, SimConfig, ValidateConfig, servo_settings
 from vinetwin.sim.session import SimSpec, start_pose
 from vinetwin.sim.simulate import simulate
 from vinetwin.sim.workers import run_jobs, twin_context, worker_world
@@ -83,6 +83,7 @@ def _digest(twin: Twin, mesh_sha: str, pose_id: str, variant: str, cfg: Validate
             "limits": cfg.limits.to_dict(),
             "faults": [list(cfg.faults), cfg.fault_rate],
             "seed": cfg.seed,
+            "servo": servo_settings(variant),
             **({"profile": cfg.field_profile().to_dict()} if cfg.profile_dir() else {}),
         }
     )
