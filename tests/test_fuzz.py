@@ -319,6 +319,31 @@ def test_a_mutated_capture_json_reads_or_is_named(
         (root / "capture.json").write_text(json.dumps(capture_meta["meta"]))
 
 
+def test_a_capture_format_version_that_is_no_whole_number_is_named(
+    capture_meta: dict[str, Any],
+) -> None:
+    """Found by the fuzz test above: a format_version of 1e999 (infinity once read) crashed
+    with OverflowError. Each of these is a CaptureError naming the field; 1.0 still reads."""
+    from vinetwin.capture.folder import CaptureError, read_capture
+
+    root = Path(capture_meta["root"])
+    good = json.dumps(capture_meta["meta"])
+    assert '"format_version": 1' in good
+    try:
+        for raw in ("1e999", "-1e999", '"x"', "-1", "1.5", "true", "null"):
+            (root / "capture.json").write_text(
+                good.replace('"format_version": 1', f'"format_version": {raw}', 1)
+            )
+            with pytest.raises(CaptureError, match="format_version"):
+                read_capture(root, check_frames=False)
+        (root / "capture.json").write_text(
+            good.replace('"format_version": 1', '"format_version": 1.0', 1)
+        )
+        read_capture(root, check_frames=False)
+    finally:
+        (root / "capture.json").write_text(good)
+
+
 @pytest.fixture(scope="module")
 def exported(sample_twin_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     """A twin with p1 exported, and p1's sidecar as written then."""

@@ -134,7 +134,18 @@ def _capture_from(root: Path, meta_path: Path, meta: Any) -> Capture:
         raise CaptureError(
             f"{meta_path}: format must be '{CAPTURE_FORMAT}', got {meta.get('format')!r}"
         )
-    if int(meta.get("format_version", 0)) > CAPTURE_VERSION:
+    version = meta.get("format_version", 0)
+    if (
+        isinstance(version, bool)
+        or not isinstance(version, (int, float))
+        or not math.isfinite(version)
+        or version != int(version)
+        or version < 0
+    ):
+        raise CaptureError(
+            f"{meta_path}: format_version must be a whole number >= 0, got {version!r}"
+        )
+    if version > CAPTURE_VERSION:
         raise CaptureError(
             f"{meta_path}: format version {meta['format_version']} is newer than this vinetwin reads ({CAPTURE_VERSION})"
         )
