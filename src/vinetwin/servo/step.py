@@ -49,7 +49,7 @@ from vinetwin.cloud import Cloud, PerceptionConfig, perceive
 from vinetwin.errors import raise_if_interrupt
 from vinetwin.frames import Array, check_pose, invert, pose_error, se3_exp, so3_log
 from vinetwin.registration.icp import ICP, ICPConfig, ICPResult
-from vinetwin.registration.search import WideSearch
+from vinetwin.registration.search import SearchResult, WideSearch
 from vinetwin.render.reference import Reference
 from vinetwin.servo.config import DENSE_VARIANTS, GUESSES, LAWS, Limits, SafetyConfig, ServoConfig
 from vinetwin.servo.pbvs import Gain, kinematic_guess, pbvs_error, pbvs_twist, target_twist
@@ -476,25 +476,38 @@ class Servo:
         """The wide search on this frame; its pose is returned once `reacquire_frames`
         consecutive frames found the same one (compared as the reference camera in the robot
         base, or as they are without kinematics)."""
-        s = self.safety
-        res = self._searcher().align(
-            cloud, prediction, translation=s.search_translation, rotation=s.search_rotation,
-            accept=self._untrusted,
-        )  # fmt: skip
+        res = self._search_around(cloud, prediction)
         if res.best is None:
             self._found.clear()
             return None, res.reason
-        T = res.best.T_ref_cur
-        implied = T if base is None else base @ invert(T)
-        if self._found:
-            jt, jr = pose_error(self._found[-1], implied)
-            if jt > s.reacquire_translation or jr > s.reacquire_rotation:
-                self._found.clear()
-        self._found.append(implied)
-        need = max(s.reacquire_frames, 1)
-        if len(self._found) < need:
-            return None, f"found a pose in {len(self._found)} of the {need} frames it needs"
+        found, need = self._agreeing(self._found, res.best.T_ref_cur, base)
+        if found < need:
+            return None, f"found a pose in {found} of the {need} frames it needs"
         return res.best, ""
+
+    def _search_around(self, cloud: Cloud, T_ref_cur: Array) -> SearchResult:
+        """The wide search's `SearchResult` on this frame, its hypotheses around `T_ref_cur`."""
+        s = self.safety
+        return self._searcher().align(
+            cloud, T_ref_cur, translation=s.search_translation, rotation=s.search_rotation,
+            accept=self._untrusted,
+        )  # fmt: skip
+
+    def _agreeing(
+        self, streak: list[Array], T_ref_cur: Array, base: Array | None
+    ) -> tuple[int, int]:
+        """Adds this frame's pose to `streak` (as the reference camera in the robot base, or as
+        it is without kinematics), which restarts when it differs from the last one by more
+        than `reacquire_translation` / `reacquire_rotation`: the consecutive frames that agree,
+        and the `reacquire_frames` needed."""
+        s = self.safety
+        implied = T_ref_cur if base is None else base @ invert(T_ref_cur)
+        if streak:
+            jt, jr = pose_error(streak[-1], implied)
+            if jt > s.reacquire_translation or jr > s.reacquire_rotation:
+                streak.clear()
+        streak.append(implied)
+        return len(streak), max(s.reacquire_frames, 1)
 
     def _doubt(
         self, r: ICPResult, cloud: Cloud, base: Array | None, stamp: float
@@ -513,17 +526,13 @@ class Servo:
         ):
             return r, ""
         self._doubt_stamp = stamp
+        better: ICPResult | None
         if self._doubts:  # the better pose, where the robot's motion since puts it
             last = self._doubts[-1]
-            better: ICPResult | None = self._tight_icp().align(
-                cloud, last if base is None else invert(last) @ base
-            )
-            why = "" if better is not None and better.converged else "lost"
+            better = self._tight_icp().align(cloud, last if base is None else invert(last) @ base)
+            why = "" if better.converged else "lost"
         else:
-            res = self._searcher().align(
-                cloud, r.T_ref_cur, translation=s.search_translation,
-                rotation=s.search_rotation, accept=self._untrusted,
-            )  # fmt: skip
+            res = self._search_around(cloud, r.T_ref_cur)
             better, why = res.best, res.reason
         if better is None or why or self._untrusted(better):
             self._doubts.clear()
@@ -534,20 +543,14 @@ class Servo:
         ):
             self._doubts.clear()
             return r, ""
-        implied = better.T_ref_cur if base is None else base @ invert(better.T_ref_cur)
-        if self._doubts:
-            jt, jr = pose_error(self._doubts[-1], implied)
-            if jt > s.reacquire_translation or jr > s.reacquire_rotation:
-                self._doubts.clear()
-        self._doubts.append(implied)
-        need = max(s.reacquire_frames, 1)
-        if len(self._doubts) >= need:
+        found, need = self._agreeing(self._doubts, better.T_ref_cur, base)
+        if found >= need:
             self._doubts.clear()
             return better, ""
         return None, (
             f"ambiguous alignment: a pose {1000 * dt:.1f} mm / {math.degrees(dr):.2f} deg from "
             f"the estimate pairs {100 * better.overlap:.0f}% of the frame, the estimate "
-            f"{100 * r.overlap:.0f}% (found in {len(self._doubts)} of the {need} frames it needs)"
+            f"{100 * r.overlap:.0f}% (found in {found} of the {need} frames it needs)"
         )
 
     def _lost_now(self, stamp: float) -> bool:
