@@ -446,6 +446,44 @@ def test_a_cordon_running_on_past_a_hanging_shoot_stays_permanent_wood() -> None
     assert abs(cut.point[2] - want) < 2e-3, (cut.point, want)
 
 
+def test_touching_canes_are_parted_where_they_part(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two canes (radius 4 mm, 1 mm apart) leave a spur's top at 5.8 cm and run side by side to
+    17 cm, where one turns 35 degrees away: the level sets part them only there; unzipping
+    (`scan.unzip`) moves the fork back to the spur and runs each axis on its own cane."""
+    from vinetwin.scan import unzip
+    from vinetwin.scan.config import SkeletonConfig
+    from vinetwin.scan.skeletonize import skeletonize
+    from vinetwin.twin.skeleton import Branch, Skeleton
+
+    def line(a: list[float], b: list[float], n: int = 30) -> np.ndarray:
+        return np.asarray(a) + np.linspace(0, 1, n)[:, None] * (np.asarray(b) - np.asarray(a))
+
+    top = [0.0, 0.0, 0.05]
+    spur = Branch(line([0, 0, 0], top), np.full(30, 0.006), "spur")
+    kept = np.vstack([top, line([-0.0045, 0, 0.058], [-0.0045, 0, 0.35])])
+    s, c = np.sin(np.radians(35)), np.cos(np.radians(35))
+    turned = np.vstack([top, line([0.0045, 0, 0.058], [0.0045, 0, 0.17]),
+                        line([0.0045, 0, 0.17], [0.0045 + 0.2 * s, 0, 0.17 + 0.2 * c])[1:]])  # fmt: skip
+    sk = Skeleton([spur, Branch(kept, np.full(len(kept), 0.004), "cane", 0),
+                   Branch(turned, np.full(len(turned), 0.004), "cane", 0)])  # fmt: skip
+    V, F = tube_mesh(sk, edge=0.002, caps="round")
+    z = np.array([0.0, 0.0, 1.0])
+
+    def turned_branch(seed: int) -> np.ndarray:
+        P, _ = simulate_scan(V, F, Q, seed)
+        out = skeletonize(P, SkeletonConfig(), 0.004, z).skeleton
+        return min((b.points for b in out.branches),
+                   key=lambda p: float(np.linalg.norm(p[-1] - turned[-1])))  # fmt: skip
+
+    for seed in range(3):
+        b = turned_branch(seed)
+        assert abs(b[0, 2] - 0.054) < 0.012, (seed, b[0])  # parts at the spur's top
+        at = b[np.argmin(np.abs(b[:, 2] - 0.12))]
+        assert np.hypot(at[0] - 0.0045, at[1]) < 0.003, (seed, at)  # on its own cane
+    monkeypatch.setattr(unzip, "MAX_ANGLE", -1.0)  # not unzipped: parted 13-15 cm late
+    assert turned_branch(0)[0, 2] > 0.15
+
+
 def test_a_d405_rig_scan_lies_on_the_plant_and_sees_both_sides() -> None:
     """`synthetic.d405_scan`: the frames of both sides of the row, fused with their pose
     errors, lie within a few millimetres of the mesh and cover most of it."""

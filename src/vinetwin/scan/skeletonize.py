@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 from vinetwin.errors import ScanError
 from vinetwin.frames import Array
 from vinetwin.scan.config import PlantKind, SkeletonConfig
+from vinetwin.scan.unzip import unzip_forks
 from vinetwin.twin.skeleton import Branch, Skeleton, nearest_on_polyline
 
 
@@ -202,6 +203,8 @@ def skeletonize(
         tree = _level_tree(P, g, root_pts, binw, points, inv, cfg, voxel)
         found_up, up_from, up_trusted = tree.up_direction()
     sk = tree.skeleton()
+    if plant == "vine":  # canes of one spur running side by side (see `scan.unzip`)
+        unzip_forks(sk, points[~stray_mask], float(np.clip(0.5 * voxel, 0.0015, 0.004)))
     if not sk.branches:
         raise ScanError("no skeleton could be found: the scan holds no branching plant")
     return SkeletonResult(sk, voxel, binw, int(stray_mask.sum()), bridges, stray_mask, found_up,
