@@ -38,6 +38,11 @@ from vinetwin.twin.skeleton import Branch, Skeleton, arc_length, nearest_on_poly
 #: Degrees: only a child leaving its parent within this of the parent's heading can have run
 #: along it (a cane leaving a cordon across it is not followed back).
 MAX_ANGLE = 60.0
+#: Only branches thinner than this share of the root's radius (its first 30 cm) are unzipped:
+#: canes, not the trunk or cordons (`scan.candidates.CORDON_RADIUS`: canes and shoots are at
+#: most 0.41 of the trunk on the generated and hydroshoot vines). On a D405 rig's smeared scan
+#: of the GDC vine, the trunk's and cordons' slices were taken for two branches.
+CANE_RADIUS = 0.5
 #: Furthest (m) a fork is moved back.
 MAX_BACK = 0.25
 #: Points on the child's circle and off the parent's, at least (and at least this share of the
@@ -90,9 +95,12 @@ def _fit(q: Array, c: Array, r: float, steps: int = 4) -> Array:
 def unzip_forks(sk: Skeleton, points: Array, tol: float) -> int:
     """Moves each fork of `sk` back to where its two branches part in `points` (see the
     module's docstring); in place. `tol`: how far (m) a point may lie off a branch's surface
-    and count as on it (the scan's noise). Returns the number of forks moved."""
+    and count as on it (the scan's noise). Only cane-thin branches are unzipped (both under
+    `CANE_RADIUS` of the root's radius). Returns the number of forks moved."""
     if len(points) < 50 or len(sk.branches) < 2:
         return 0
+    root = sk.branches[0]
+    thin = CANE_RADIUS * float(np.median(root.radii[arc_length(root.points) <= 0.3]))
     tree = cKDTree(points)
     moved = 0
     # parents' children from the farthest along first, so that a fork moved back does not
@@ -103,7 +111,7 @@ def unzip_forks(sk: Skeleton, points: Array, tol: float) -> int:
             P = sk.branches[b.parent].points
             order.append((b.parent, -_arc_on(P, b.points[0]), c))
     for _, _, c in sorted(order):
-        if _unzip_one(sk, c, points, tree, tol):
+        if _unzip_one(sk, c, points, tree, tol, thin):
             moved += 1
     return moved
 
@@ -151,7 +159,7 @@ def _one_circle(q: Array, tol: float) -> int:
     return int(np.sum(e < tol))
 
 
-def _unzip_one(sk: Skeleton, c: int, points: Array, tree: cKDTree, tol: float) -> bool:
+def _unzip_one(sk: Skeleton, c: int, points: Array, tree: cKDTree, tol: float, thin: float) -> bool:
     C = sk.branches[c]
     B = sk.branches[C.parent]
     if len(C.points) < 3 or len(B.points) < 3:
@@ -166,7 +174,7 @@ def _unzip_one(sk: Skeleton, c: int, points: Array, tree: cKDTree, tol: float) -
     rC = float(np.median(C.radii[first])) if first.any() else float(C.radii[1])
     tB = _unit(_at(B.points, arcB, sB) - _at(B.points, arcB, max(sB - 0.03, 0.0)))
     dC = _unit(_at(C.points, arcC, min(arcC[1] + 0.03, arcC[-1])) - C.points[1])
-    if math.degrees(math.acos(float(np.clip(dC @ tB, -1, 1)))) > MAX_ANGLE:
+    if max(rB, rC) >= thin or math.degrees(math.acos(float(np.clip(dC @ tB, -1, 1)))) > MAX_ANGLE:
         return False
     step = max(2.0 * tol, 0.004)
     reach = 2.0 * (rB + rC) + 2 * tol + 0.005
