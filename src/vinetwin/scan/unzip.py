@@ -33,16 +33,18 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vinetwin.frames import Array
-from vinetwin.twin.skeleton import Branch, Skeleton, arc_length, nearest_on_polyline
+from vinetwin.twin.skeleton import Branch, Skeleton, arc_length, nearest_on_polyline, resample
 
 #: Degrees: only a child leaving its parent within this of the parent's heading can have run
 #: along it (a cane leaving a cordon across it is not followed back).
 MAX_ANGLE = 60.0
-#: Only branches thinner than this share of the root's radius (its first 30 cm) are unzipped:
-#: canes, not the trunk or cordons (`scan.candidates.CORDON_RADIUS`: canes and shoots are at
-#: most 0.41 of the trunk on the generated and hydroshoot vines). On a D405 rig's smeared scan
-#: of the GDC vine, the trunk's and cordons' slices were taken for two branches.
-CANE_RADIUS = 0.5
+#: Metres: no fork is unzipped when the scan's points lie farther than this (median absolute
+#: deviation) off the skeleton's surfaces: two circles of a cane's radius cannot be told from
+#: one there. Measured: 1.0-1.3 mm on simulated LiDAR scans of the vines at the realistic
+#: quality, 1.7 at the coarse, 1.9-2.1 on a D405 rig's fused frames of the dense and VSP vines
+#: (unzipped: better), 3.0 on the GDC vine's (its trunk's and cordons' smeared slices taken for
+#: two branches: precision 89.1% to 72.1%).
+MAX_SPREAD = 0.0025
 #: Furthest (m) a fork is moved back.
 MAX_BACK = 0.25
 #: Points on the child's circle and off the parent's, at least (and at least this share of the
@@ -95,12 +97,12 @@ def _fit(q: Array, c: Array, r: float, steps: int = 4) -> Array:
 def unzip_forks(sk: Skeleton, points: Array, tol: float) -> int:
     """Moves each fork of `sk` back to where its two branches part in `points` (see the
     module's docstring); in place. `tol`: how far (m) a point may lie off a branch's surface
-    and count as on it (the scan's noise). Only cane-thin branches are unzipped (both under
-    `CANE_RADIUS` of the root's radius). Returns the number of forks moved."""
+    and count as on it (the scan's noise). Nothing is unzipped when the points lie more than
+    `MAX_SPREAD` off the skeleton's surfaces. Returns the number of forks moved."""
     if len(points) < 50 or len(sk.branches) < 2:
         return 0
-    root = sk.branches[0]
-    thin = CANE_RADIUS * float(np.median(root.radii[arc_length(root.points) <= 0.3]))
+    if surface_spread(sk, points) > MAX_SPREAD:
+        return 0
     tree = cKDTree(points)
     moved = 0
     # parents' children from the farthest along first, so that a fork moved back does not
@@ -111,9 +113,24 @@ def unzip_forks(sk: Skeleton, points: Array, tol: float) -> int:
             P = sk.branches[b.parent].points
             order.append((b.parent, -_arc_on(P, b.points[0]), c))
     for _, _, c in sorted(order):
-        if _unzip_one(sk, c, points, tree, tol, thin):
+        if _unzip_one(sk, c, points, tree, tol):
             moved += 1
     return moved
+
+
+def surface_spread(sk: Skeleton, points: Array, n: int = 3000) -> float:
+    """Median absolute deviation (m) of how far the points (a sample of n) lie off the
+    skeleton's surfaces (their distance from the nearest axis less its radius; points over
+    2 cm off, strays and unskeletonised pieces, left out)."""
+    axes = [resample(b.points, b.radii, 0.002) for b in sk.branches]
+    A = np.vstack([a[0] for a in axes])
+    R = np.concatenate([a[1] for a in axes])
+    rng = np.random.default_rng(0)
+    Q = points[rng.choice(len(points), min(n, len(points)), replace=False)]
+    d, k = cKDTree(A).query(Q)
+    e = d - R[k]
+    e = e[np.abs(e) < 0.02]
+    return float(np.median(np.abs(e - np.median(e)))) if len(e) else 0.0
 
 
 def _arc_on(P: Array, p: Array) -> float:
@@ -159,7 +176,7 @@ def _one_circle(q: Array, tol: float) -> int:
     return int(np.sum(e < tol))
 
 
-def _unzip_one(sk: Skeleton, c: int, points: Array, tree: cKDTree, tol: float, thin: float) -> bool:
+def _unzip_one(sk: Skeleton, c: int, points: Array, tree: cKDTree, tol: float) -> bool:
     C = sk.branches[c]
     B = sk.branches[C.parent]
     if len(C.points) < 3 or len(B.points) < 3:
@@ -174,7 +191,7 @@ def _unzip_one(sk: Skeleton, c: int, points: Array, tree: cKDTree, tol: float, t
     rC = float(np.median(C.radii[first])) if first.any() else float(C.radii[1])
     tB = _unit(_at(B.points, arcB, sB) - _at(B.points, arcB, max(sB - 0.03, 0.0)))
     dC = _unit(_at(C.points, arcC, min(arcC[1] + 0.03, arcC[-1])) - C.points[1])
-    if max(rB, rC) >= thin or math.degrees(math.acos(float(np.clip(dC @ tB, -1, 1)))) > MAX_ANGLE:
+    if math.degrees(math.acos(float(np.clip(dC @ tB, -1, 1)))) > MAX_ANGLE:
         return False
     step = max(2.0 * tol, 0.004)
     reach = 2.0 * (rB + rC) + 2 * tol + 0.005
