@@ -33,7 +33,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vinetwin.frames import Array
-from vinetwin.twin.skeleton import Branch, Skeleton, arc_length, nearest_on_polyline, resample
+from vinetwin.twin.skeleton import (
+    Branch,
+    Skeleton,
+    arc_length,
+    arc_of_nearest,
+    axis_samples,
+    nearest_on_polyline,
+)
 
 #: Degrees: only a child leaving its parent within this of the parent's heading can have run
 #: along it (a cane leaving a cordon across it is not followed back).
@@ -111,7 +118,7 @@ def unzip_forks(sk: Skeleton, points: Array, tol: float) -> int:
     for c, b in enumerate(sk.branches):
         if b.parent >= 0:
             P = sk.branches[b.parent].points
-            order.append((b.parent, -_arc_on(P, b.points[0]), c))
+            order.append((b.parent, -arc_of_nearest(b.points[0], P, arc_length(P)), c))
     for _, _, c in sorted(order):
         if _unzip_one(sk, c, points, tree, tol):
             moved += 1
@@ -122,21 +129,13 @@ def surface_spread(sk: Skeleton, points: Array, n: int = 3000) -> float:
     """Median absolute deviation (m) of how far the points (a sample of n) lie off the
     skeleton's surfaces (their distance from the nearest axis less its radius; points over
     2 cm off, strays and unskeletonised pieces, left out)."""
-    axes = [resample(b.points, b.radii, 0.002) for b in sk.branches]
-    A = np.vstack([a[0] for a in axes])
-    R = np.concatenate([a[1] for a in axes])
+    A, R = axis_samples(sk)
     rng = np.random.default_rng(0)
     Q = points[rng.choice(len(points), min(n, len(points)), replace=False)]
     d, k = cKDTree(A).query(Q)
     e = d - R[k]
     e = e[np.abs(e) < 0.02]
     return float(np.median(np.abs(e - np.median(e)))) if len(e) else 0.0
-
-
-def _arc_on(P: Array, p: Array) -> float:
-    arc = arc_length(P)
-    k, t, _ = nearest_on_polyline(p, P)
-    return float(arc[k] + t * (arc[min(k + 1, len(arc) - 1)] - arc[k]))
 
 
 def _two_circles(
@@ -182,7 +181,7 @@ def _unzip_one(sk: Skeleton, c: int, points: Array, tree: cKDTree, tol: float) -
     if len(C.points) < 3 or len(B.points) < 3:
         return False
     arcB, arcC = arc_length(B.points), arc_length(C.points)
-    sB = _arc_on(B.points, C.points[0])
+    sB = arc_of_nearest(C.points[0], B.points, arcB)
     after = (arcB > sB + 1e-6) & (arcB <= sB + 0.04)
     if not after.any() or sB < 0.02 or arcC[-1] < 0.03:
         return False

@@ -182,7 +182,7 @@ FIRST_NODE = 0.0175
 _EPS = 1e-3  # m: a child starting this close to its parent's end continues it
 
 
-def _arc_of_nearest(p: Array, pts: Array, arc: Array) -> float:
+def arc_of_nearest(p: Array, pts: Array, arc: Array) -> float:
     """Arc position of the point of the polyline `pts` nearest p."""
     k, t, _ = nearest_on_polyline(p, pts)
     return float(arc[k] + t * (arc[min(k + 1, len(arc) - 1)] - arc[k]))
@@ -198,7 +198,7 @@ def _attachments(sk: Skeleton) -> tuple[list[list[float]], list[float]]:
         p = b.parent
         if p < 0:
             continue
-        at[i] = _arc_of_nearest(b.points[0], sk.branches[p].points, arcs[p])
+        at[i] = arc_of_nearest(b.points[0], sk.branches[p].points, arcs[p])
         on[p].append(at[i])
     return on, at
 
