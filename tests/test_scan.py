@@ -446,6 +446,45 @@ def test_a_cordon_running_on_past_a_hanging_shoot_stays_permanent_wood() -> None
     assert abs(cut.point[2] - want) < 2e-3, (cut.point, want)
 
 
+def test_a_head_trained_vines_arm_on_the_chain_of_a_shoot_is_permanent_wood() -> None:
+    """A head-trained vine (the `vsp_ww` digitisation: trunk 20 mm, a 22 cm arm of 12.5 mm):
+    the skeleton's chain ran from the trunk up a thin shoot, the arm hangs from that shoot's
+    start and runs on into another shoot. The arm is split where it thins, labelled permanent
+    wood though it is short and not the trunk's child, and the cane on it is cut counted from
+    the arm's surface."""
+    from vinetwin.scan.candidates import cut_candidates, label_kinds
+    from vinetwin.scan.config import FIRST_NODE
+    from vinetwin.scan.frame import split_cordons
+    from vinetwin.twin.skeleton import Branch, Skeleton
+
+    line = np.linspace(0, 1, 60)[:, None]
+    z = np.array([0.0, 0.0, 1.0])
+    trunk = Branch(np.hstack([0 * line, 0 * line, 0.7 * line]), np.full(60, 0.02), "trunk")
+    shoot = Branch(np.hstack([0 * line, 0 * line, 0.7 + 0.4 * line]), np.full(60, 0.004),
+                   "cane", 0)  # fmt: skip
+    arm = np.hstack([0.01 + 0.21 * line, 0 * line, 0.7 + 0 * line])
+    on = np.hstack([0.22 + 0 * line, 0 * line, 0.7 + 0.4 * line])[1:]
+    chain = Branch(np.vstack([arm, on]), np.r_[np.full(60, 0.0125), np.full(59, 0.004)],
+                   "cane", 1)  # fmt: skip
+    cane = Branch(np.hstack([0.1 + 0 * line, 0 * line, 0.7 + 0.4 * line]), np.full(60, 0.004),
+                  "cane", 2)  # fmt: skip
+    sk = Skeleton([trunk, shoot, chain, cane])
+    split_cordons(sk, z)
+    label_kinds(sk, z, "vine")
+    kinds = [b.kind for b in sk.branches]
+    assert kinds[2] == "cordon" and kinds.count("cordon") == 1, kinds
+    assert 0.19 <= sk.branches[2].points[-1, 0] <= 0.25, sk.branches[2].points[-1]
+    assert sk.branches[-1].parent == 2 and np.isclose(sk.branches[-1].points[-1, 2], 1.1)
+    cut = next(c for c in cut_candidates(sk, "vine", 0.07) if c.branch == 3)
+    want = 0.7 + 0.0125 + FIRST_NODE + 1.3 * 0.07  # off the arm's surface
+    assert np.allclose(cut.point, [0.1, 0, want], atol=2e-3), (cut.point, want)
+    # a thin shoot leaving the head level is not an arm
+    sk = Skeleton([trunk, shoot, Branch(chain.points, np.full(119, 0.004), "cane", 1), cane])
+    split_cordons(sk, z)
+    label_kinds(sk, z, "vine")
+    assert "cordon" not in [b.kind for b in sk.branches]
+
+
 def test_touching_canes_are_parted_where_they_part(monkeypatch: pytest.MonkeyPatch) -> None:
     """Two canes (radius 4 mm, 1 mm apart) leave a spur's top (on a 15 mm trunk) at 5.8 cm and
     run side by side to 17 cm, where one turns 35 degrees away: the level sets part them only there; unzipping

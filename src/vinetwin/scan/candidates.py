@@ -76,10 +76,22 @@ and hydroshoot's vines: cordons 0.61-0.82 of the trunk, canes and shoots at most
 long level shoot or cane on a cordon is not taken for permanent wood."""
 
 
+ARM_MIN = 0.05
+"""A head-trained vine's arm (m): a branch from the trunk whose first `ARM_MIN` or more is as
+thick as a cordon (`CORDON_RADIUS`) and level, then thins, is split there (`frame.split_cordons`)
+and its thick start is permanent wood, a cordon however short, when it leaves the trunk's
+head (starts within `HEAD` of the trunk's top)."""
+
+HEAD = 0.06
+"""How near the trunk's top (m) an arm starts."""
+
+
 def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
     """Names each branch's kind from its shape (in place): for a vine the root is the trunk,
-    long near-horizontal branches from the trunk are cordons, branches carrying others on a
-    cordon are spurs, free branches canes; for a tree the root is the trunk, the rest branches."""
+    long near-horizontal thick branches from the trunk are cordons (and so is a head-trained
+    vine's arm: thick, level, carrying others, leaving the trunk's head from whichever branch
+    the skeleton's chain gave it), short branches carrying others are spurs, the rest canes; for
+    a tree the root is the trunk, the rest branches."""
     children: list[list[int]] = [[] for _ in sk.branches]
     for i, b in enumerate(sk.branches):
         if b.parent >= 0:
@@ -88,6 +100,7 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
     for i in order:  # parents before children, however the list is ordered
         order.extend(children[i])
     r_trunk = float(np.median(sk.branches[order[0]].radii)) if order else 0.0
+    head = sk.branches[order[0]].points[-1] if order else np.zeros(3)
     for i in order:
         b = sk.branches[i]
         kind: BranchKind
@@ -100,7 +113,11 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
             flat = abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up))  # |sin| of its slope
             parent_kind = sk.branches[b.parent].kind
             thick = float(np.median(b.radii)) >= CORDON_RADIUS * r_trunk
-            if parent_kind in ("trunk", "cordon") and b.length > 0.15 and flat < 0.5 and thick:
+            rise = abs(float((b.points[-1] - b.points[0]) @ up)) / max(b.length, 1e-9)
+            arm = (b.length >= ARM_MIN and bool(children[i]) and rise < 0.64
+                   and float(np.linalg.norm(b.points[0] - head)) <= HEAD)  # fmt: skip
+            cordon = parent_kind in ("trunk", "cordon") and b.length > 0.15 and flat < 0.5
+            if (cordon or arm) and thick:  # an arm, from whichever branch the chain gave it
                 kind = "cordon"
             elif children[i] and b.length < 0.12:
                 kind = "spur"
