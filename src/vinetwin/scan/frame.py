@@ -166,11 +166,12 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
 def _arm_end(P: Array, s: Array, r: Array, up: Array, r_ref: float,
              window: float = 0.03) -> int | None:  # fmt: skip
     """The index where a branch's thick, level start ends (its radius, a median over
-    `window` either side, first below `r_ref`), when that start is at least `ARM_MIN` long,
+    `window` either side, below `r_ref` from there on for `ARM_MIN`), when that start is at
+    least `ARM_MIN` long,
     level (within 40 degrees of horizontal) and followed by at least 5 cm more; else None.
     Measured on the head-trained `vsp_ww` vine's scans: its 22 cm arm (12.5 mm in radius, the
     trunk 20 mm) came out 12-15 mm thick for 7-20 cm and then 4-6 mm along the shoot the
-    skeleton's chain ran on into."""
+    skeleton's chain ran on into, with dips to 9 mm (under `r_ref`) for 4 cm within the arm."""
     from vinetwin.scan.candidates import ARM_MIN
 
     if r_ref <= 0 or s[-1] < ARM_MIN + 0.05:
@@ -178,8 +179,12 @@ def _arm_end(P: Array, s: Array, r: Array, up: Array, r_ref: float,
     lo = np.searchsorted(s, s - window)
     hi = np.searchsorted(s, s + window, side="right")
     w = np.array([np.median(r[a:b]) for a, b in zip(lo, hi, strict=True)])
-    thin = np.flatnonzero(w < r_ref)
-    k = int(thin[0]) if len(thin) else len(s)
+    # the first point from which it stays thin for `ARM_MIN` on (a dip of the scan's radius
+    # within the arm, as where a shoot leaves it, is not its end)
+    thick = np.r_[0, np.cumsum(w >= r_ref)]
+    ahead = np.searchsorted(s, s + ARM_MIN, side="right")
+    stays = np.flatnonzero((w < r_ref) & (thick[ahead] == thick[np.arange(len(s))]))
+    k = int(stays[0]) if len(stays) else len(s)
     if k >= len(s) or s[k] < ARM_MIN or s[-1] - s[k] < 0.05:
         return None
     if abs(float((P[k] - P[0]) @ up)) > 0.64 * s[k]:  # rises by over 40 degrees along it
