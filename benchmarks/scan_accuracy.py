@@ -107,6 +107,25 @@ def run_one(name: str, quality: str, seed: int, work: Path, trellis: bool) -> di
             "up_from": scan.up_from, **acc.to_dict()}  # fmt: skip
 
 
+def print_spread(rows: list[dict[str, Any]]) -> None:
+    """Per plant and quality over the seeds: completeness and precision (lowest-highest), and
+    per seed the cut candidates found and the canes lost, so that no one seed's luck is quoted
+    for the whole."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        if "error" not in r:
+            groups.setdefault((r["plant"], r["quality"]), []).append(r)
+    print("\n| plant | quality | seeds | complete | precise | cuts found / true, per seed "
+          "| canes lost, per seed |\n|---|---|---|---|---|---|---|")  # fmt: skip
+    for (name, quality), rs in groups.items():
+        c = [r["completeness"] for r in rs]
+        p = [r["precision"] for r in rs]
+        cuts = ", ".join(str(r["candidates_found"]) for r in rs)
+        lost = ", ".join(str(r["canes_lost"]) for r in rs)
+        print(f"| {name} | {quality} | {len(rs)} | {min(c):.1%}-{max(c):.1%} | "
+              f"{min(p):.1%}-{max(p):.1%} | {cuts} / {rs[0]['candidates_true']} | {lost} |")  # fmt: skip
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -122,7 +141,11 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--trellis", action="store_true", help="scan the ground, a wire and posts too")
+    ap.add_argument("--spread", type=Path, help="print the seed spread of a stored results file")
     a = ap.parse_args()
+    if a.spread:
+        print_spread(json.loads(a.spread.read_text())["rows"])
+        return
     rows = []
     print(
         "| plant | quality | points | s | up err ° | complete | precise | radius err mm | tips found/true (extra) | canes lost/seen | cuts found/true | Chamfer mm | F@2mm |"
@@ -150,6 +173,8 @@ def main() -> None:
                           f"| {r['tips_found']}/{r['tips_true']} ({r['tips_extra']}) | {r['canes_lost']}/{r['canes_seen']} "
                           f"| {r['candidates_found']}/{r['candidates_true']} ({r['candidates_ours']}) "
                           f"| {r['chamfer_mm']:.2f} | {r['fscore_2mm']:.2f} |", flush=True)  # fmt: skip
+    if a.seeds > 1:
+        print_spread(rows)
     if a.json:
         a.json.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
 

@@ -524,6 +524,30 @@ def test_touching_canes_are_parted_where_they_part(monkeypatch: pytest.MonkeyPat
     assert turned_branch(0)[0, 2] > 0.15
 
 
+def test_an_unzipped_cane_keeps_its_whole_length() -> None:
+    """Three slices' fitted centres of a child can zigzag (measured on `vsp_ww`'s scan at seed
+    1: a 1.09 m cane cut to 2.5 cm, lost). The child keeps its path from where it passes the
+    last centre along the parent's heading, not along the centres' own heading."""
+    from vinetwin.scan.unzip import _apply
+    from vinetwin.twin.skeleton import Branch, Skeleton, arc_length
+
+    t = np.linspace(0, 1, 60)[:, None]
+    parent = Branch(np.hstack([0.4 * t, 0 * t, 0 * t]), np.full(60, 0.006), "cane")
+    child = Branch(np.hstack([0.2 + 0.9 * t, 0.3 * t, 0 * t]), np.full(60, 0.004), "cane", 0)
+    sk = Skeleton([Branch(np.array([[0, 0, -0.5], [0, 0, 0.0]]), np.full(2, 0.02), "trunk"),
+                   parent, child])  # fmt: skip
+    sk.branches[1].parent = 0
+    sk.branches[2].parent = 1
+    # slices 4 mm apart going back from the fork; the child's centres step forwards
+    found = [(0.2 - 0.004 * k, np.array([0.2 - 0.004 * k, -0.005, 0]),
+              np.array([0.192 + 0.004 * k, 0.005, 0])) for k in range(3)]  # fmt: skip
+    moved = _apply(sk, 2, found, 0.006, 0.004, 0.004)
+    C = sk.branches[2]
+    assert arc_length(C.points)[-1] > 0.9, arc_length(C.points)[-1]
+    assert np.allclose(C.points[-1], [1.1, 0.3, 0])
+    assert moved and np.isclose(C.points[0, 0], 0.188)  # the fork moved back a slice past
+
+
 def test_a_d405_rig_scan_lies_on_the_plant_and_sees_both_sides() -> None:
     """`synthetic.d405_scan`: the frames of both sides of the row, fused with their pose
     errors, lie within a few millimetres of the mesh and cover most of it."""

@@ -254,19 +254,27 @@ def _unzip_one(sk: Skeleton, c: int, points: Array, tree: cKDTree, tol: float) -
         s -= step
     if len(found) < 2:
         return False
-    _apply(sk, c, found, rB, rC, step)
-    return True
+    return _apply(sk, c, found, rB, rC, step)
 
 
 def _apply(sk: Skeleton, c: int, found: list[tuple[float, Array, Array]], rB: float,
-           rC: float, step: float) -> None:  # fmt: skip
+           rC: float, step: float) -> bool:  # fmt: skip
     """The parent's axis through its own centres over the unzipped stretch, the child's
-    through its centres back to the new fork; the parent's other children re-attached."""
+    through its centres back to the new fork; the parent's other children re-attached. The
+    child keeps its path from where it passes the last centre along the parent's heading
+    there (the centres' own heading, over a few slices, can point anywhere); when none of it
+    does, nothing is changed (False)."""
     C = sk.branches[c]
     p = C.parent
     B = sk.branches[p]
     arcB = arc_length(B.points)
     s_hi = found[0][0]
+    head = found[0][2]
+    d = _unit(_at(B.points, arcB, min(s_hi + 0.01, arcB[-1]))
+              - _at(B.points, arcB, max(s_hi - 0.01, 0.0)))  # fmt: skip
+    past = [i for i in range(1, len(C.points)) if (C.points[i] - head) @ d > 1e-4]
+    if not past:
+        return False
     s_fork = max(found[-1][0] - step, 0.0)
     fork = _at(B.points, arcB, s_fork)
     keep_lo = arcB < s_fork - 1e-6
@@ -277,10 +285,7 @@ def _apply(sk: Skeleton, c: int, found: list[tuple[float, Array, Array]], rB: fl
     Br = np.concatenate([B.radii[keep_lo], [float(np.interp(s_fork, arcB, B.radii))],
                          np.full(len(fb), rB), B.radii[keep_hi]])  # fmt: skip
     sk.branches[p] = Branch(Bp, Br, kind=B.kind, parent=B.parent, label=B.label, nodes=B.nodes)
-    head = fc[-1]
-    d = _unit(fc[-1] - fc[0]) if len(fc) > 1 else _unit(C.points[-1] - head)
-    past = [i for i in range(1, len(C.points)) if (C.points[i] - head) @ d > 1e-4]
-    rest = list(range(past[0], len(C.points))) if past else []  # from where it passes the head
+    rest = list(range(past[0], len(C.points)))  # from where it passes the head
     Cp = np.vstack([fork[None], fc, C.points[rest]])
     Cr = np.concatenate([[min(rC, float(Br[len(B.points[keep_lo])]))], np.full(len(fc), rC),
                          C.radii[rest]])  # fmt: skip
@@ -289,3 +294,4 @@ def _apply(sk: Skeleton, c: int, found: list[tuple[float, Array, Array]], rB: fl
         if o.parent in (p, c) and o is not sk.branches[c]:
             _, _, q = nearest_on_polyline(o.points[0], Bp if o.parent == p else Cp)
             o.points[0] = q
+    return True
