@@ -446,6 +446,38 @@ def test_a_cordon_running_on_past_a_hanging_shoot_stays_permanent_wood() -> None
     assert abs(cut.point[2] - want) < 2e-3, (cut.point, want)
 
 
+def test_a_tapering_cordons_end_continues_it() -> None:
+    """A cordon tapers: the GDC vine's right cordon (17 mm in its scans, the trunk 26 mm) curls
+    on at 10-12.5 mm, under half the trunk's radius, from a shoot hanging at its end. Judged
+    against the cordon's own radius (`CONTINUE_RADIUS`), that end continues the cordon and a
+    cane on it is cut counted from it."""
+    from vinetwin.scan.candidates import CONTINUE_RADIUS, CORDON_RADIUS, label_kinds
+    from vinetwin.scan.frame import split_cordons
+    from vinetwin.twin.skeleton import Branch, Skeleton
+
+    line = np.linspace(0, 1, 60)[:, None]
+    z = np.array([0.0, 0.0, 1.0])
+    trunk = Branch(np.hstack([0 * line, 0 * line, 1.5 * line]), np.full(60, 0.026), "trunk")
+    level = np.hstack([0.5 * line, 0 * line, 1.5 + 0 * line])
+    down = np.hstack([0.5 + 0.05 * line, 0 * line, 1.5 - 0.6 * line])[1:]
+    chain = Branch(np.vstack([level, down]), np.r_[np.full(60, 0.017), np.full(59, 0.004)],
+                   "cane", 0)  # fmt: skip
+    start = down[7]
+    rest = Branch(np.hstack([start[0] + 0.3 * line, 0 * line, start[2] + 0 * line]),
+                  np.full(60, 0.011), "cane", 1)  # fmt: skip
+    cane = Branch(np.hstack([0.7 + 0 * line, 0 * line, start[2] + 0.5 * line]),
+                  np.full(60, 0.004), "cane", 2)  # fmt: skip
+    assert CONTINUE_RADIUS * 0.017 <= 0.011 < CORDON_RADIUS * 0.026
+    sk = Skeleton([trunk, chain, rest, cane])
+    split_cordons(sk, z)
+    label_kinds(sk, z, "vine")
+    kinds = [b.kind for b in sk.branches]
+    assert kinds[:3] == ["trunk", "cordon", "cordon"], kinds
+    cut = next(c for c in cut_candidates(sk, "vine", 0.07) if c.branch == 3)
+    want = start[2] + 0.011 + 0.0175 + 1.3 * 0.07  # off the continued cordon's surface
+    assert abs(cut.point[2] - want) < 2e-3, (cut.point, want)
+
+
 def test_a_head_trained_vines_arm_on_the_chain_of_a_shoot_is_permanent_wood() -> None:
     """A head-trained vine (the `vsp_ww` digitisation: trunk 20 mm, a 22 cm arm of 12.5 mm):
     the skeleton's chain ran from the trunk up a thin shoot, the arm hangs from that shoot's

@@ -85,6 +85,15 @@ head (starts within `HEAD` of the trunk's top)."""
 HEAD = 0.06
 """How near the trunk's top (m) an arm starts."""
 
+CONTINUE_WITHIN = 0.10
+"""How near a cordon's end (m) a branch must start to be taken for its continuation."""
+
+CONTINUE_RADIUS = 0.6
+"""A cordon tapers: its continuation is thick enough at this share of the cordon's own median
+radius, when that is under the trunk's rule (`candidates.CORDON_RADIUS`). Measured on the GDC
+vine's scans: its right cordon (17 mm in the scan) curls on for 16 cm at 10-12.5 mm, under half
+the trunk's 26 mm, while the shoots hanging there are 4-5 mm."""
+
 
 def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
     """Names each branch's kind from its shape (in place): for a vine the root is the trunk,
@@ -117,7 +126,10 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
             arm = (b.length >= ARM_MIN and bool(children[i]) and rise < 0.64
                    and float(np.linalg.norm(b.points[0] - head)) <= HEAD)  # fmt: skip
             cordon = parent_kind in ("trunk", "cordon") and b.length > 0.15 and flat < 0.5
-            if (cordon or arm) and thick:  # an arm, from whichever branch the chain gave it
+            pb = sk.branches[b.parent]  # a cordon's continuation from its end, tapering
+            tapers = (parent_kind == "cordon" and float(np.linalg.norm(b.points[0] - pb.points[-1])) <= CONTINUE_WITHIN
+                      and float(np.median(b.radii)) >= CONTINUE_RADIUS * float(np.median(pb.radii)))  # fmt: skip
+            if ((cordon or arm) and thick) or (cordon and tapers):  # an arm: wherever hung
                 kind = "cordon"
             elif children[i] and b.length < 0.12:
                 kind = "spur"

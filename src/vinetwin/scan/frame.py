@@ -218,30 +218,31 @@ def _level_and_thick(b: Branch, up: Array, r_ref: float) -> bool:
     return abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up)) < 0.5
 
 
-CONTINUE_WITHIN = 0.10
-"""How near a cordon's end (m) a branch must start to be taken for its continuation."""
-
-
 def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) -> None:
     """Where a cordon forks at its end, the skeleton's chain may run on into a shoot hanging
     from it while the cordon itself goes on as a branch of that shoot (measured on the GDC
     vine: its right cordon's last 30 cm). A branch starting within `CONTINUE_WITHIN` of a cordon's end whose
     thick part is a cordon's shape continues it: it hangs from the cordon, split where it
-    thins for good. Repeated from each new piece; in place, parents first."""
+    thins for good (a cordon tapers: thick by `candidates.CONTINUE_RADIUS` of the cordon's own
+    radius where that is under `r_ref`). Repeated from each new piece; in place, parents
+    first."""
+    from vinetwin.scan.candidates import CONTINUE_RADIUS, CONTINUE_WITHIN
+
     queue = [i for i, b in enumerate(sk.branches)
              if b.parent in roots and _level_and_thick(b, up, r_ref)]  # fmt: skip
     done = set(queue) | roots
     while queue:
         c = queue.pop()
         end = sk.branches[c].points[-1]
+        r_c = min(r_ref, CONTINUE_RADIUS * float(np.median(sk.branches[c].radii)))
         for j in range(c + 1, len(sk.branches)):
             b = sk.branches[j]
             if j in done or float(np.linalg.norm(b.points[0] - end)) > CONTINUE_WITHIN:
                 continue
-            k = _thin_from(arc_length(b.points), b.radii, r_ref)
+            k = _thin_from(arc_length(b.points), b.radii, r_c)
             if k is not None:
                 _split_at(sk, j, k)
-            if not _level_and_thick(sk.branches[j], up, r_ref):
+            if not _level_and_thick(sk.branches[j], up, r_c):
                 continue
             sk.branches[j].parent = c
             done.add(j)
