@@ -13,7 +13,7 @@ export's chain), the time to propose, and:
   (the skeleton's share of the error), once with the true twin's own nodes (the whole chain).
 
     .venv/bin/python benchmarks/propose.py [--plants sample dense ...] [--rules spur cane]
-        [--agreement] [--keep DIR] [--check-profile PROFILE] [--json benchmarks/results/propose.json]
+        [--agreement [--agreement-seeds 3]] [--keep DIR] [--check-profile PROFILE] [--json benchmarks/results/propose.json]
         [--picture docs/results/proposals_dense.png]
 
 `--keep DIR` leaves the proposed twins there (for `vinetwin validate DIR --profile field`).
@@ -175,8 +175,9 @@ def run_plant(name: str, rule: str, work: Path, check_profile: str = "") -> dict
     }  # fmt: skip
 
 
-def agreement(name: str, work: Path) -> dict[str, Any]:
-    """Proposals on a twin imported from a simulated scan against those on the true twin."""
+def agreement(name: str, work: Path, seed: int = 0) -> dict[str, Any]:
+    """Proposals on a twin imported from a simulated scan (its draw: `seed`) against those on
+    the true twin."""
     from scan_accuracy import truth_skeleton, write_ply
 
     from vinetwin.scan.config import ScanImportConfig
@@ -187,14 +188,14 @@ def agreement(name: str, work: Path) -> dict[str, Any]:
     truth = _sample3() if name == "sample" else truth_skeleton(name)
     V, F = tube_mesh(truth, edge=0.003, caps="round")
     wire = float(truth.branches[0].points[-1][2])
-    P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], 0, wire_height=wire)
-    T_scan_vine = scanner_frame(0)
+    P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], seed, wire_height=wire)
+    T_scan_vine = scanner_frame(seed)
     f = work / f"{name}_scan.ply"
     write_ply(f, (P @ T_scan_vine[:3, :3].T + T_scan_vine[:3, 3]) * 1000.0)
     twin_s, scan = import_scan(f, work / f"{name}_scan.twin", ScanImportConfig(), overwrite=True)
     T = scan.T_vine_scan @ T_scan_vine  # the truth's vine frame -> the scan twin's
     true_twin = make_twin(name, work / f"{name}_true.twin")
-    out: dict[str, Any] = {"plant": name}
+    out: dict[str, Any] = {"plant": name, "seed": seed}
     for label, internode in (("same_internode", DEFAULT_INTERNODE), ("true_nodes", 0.0)):
         for tw in (twin_s, true_twin):
             for c in list(tw.cut_points):
@@ -280,6 +281,7 @@ def main() -> None:
     ap.add_argument("--plants", nargs="*", default=list(PLANTS))
     ap.add_argument("--rules", nargs="*", default=["spur", "cane"])
     ap.add_argument("--agreement", action="store_true", help="also the scanned-twin agreement")
+    ap.add_argument("--agreement-seeds", type=int, default=1, help="scans per plant (seeds 0..N-1)")
     ap.add_argument("--keep", type=Path, help="leave the proposed twins in this folder")
     ap.add_argument(
         "--check-profile",
@@ -315,13 +317,14 @@ def main() -> None:
         if a.picture and (work / "dense_spur.twin").exists():
             picture(work / "dense_spur.twin", "spur", a.picture)
         if a.agreement:
-            print("\n| plant | same internode: matched / true (missing, extra) | true nodes: "
-                  "matched / true (missing, extra) |\n|---|---|---|")  # fmt: skip
-            for name in [p for p in a.plants if p != "apple_spindle"]:
-                g = agreement(name, work)
+            print("\n| plant | seed | same internode: matched / true (missing, extra) | true "
+                  "nodes: matched / true (missing, extra) |\n|---|---|---|---|")  # fmt: skip
+            for name, seed in [(p, k) for p in a.plants if p != "apple_spindle"
+                               for k in range(a.agreement_seeds)]:  # fmt: skip
+                g = agreement(name, work, seed)
                 agree.append(g)
                 s, t = g["same_internode"], g["true_nodes"]
-                print(f"| {name} | {s['matched']}/{s['true']} = {s['share']:.0%} ({s['missing']}, "
+                print(f"| {name} | {seed} | {s['matched']}/{s['true']} = {s['share']:.0%} ({s['missing']}, "
                       f"{s['extra']}) | {t['matched']}/{t['true']} = {t['share']:.0%} "
                       f"({t['missing']}, {t['extra']}) |", flush=True)  # fmt: skip
     finally:
