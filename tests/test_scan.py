@@ -412,67 +412,44 @@ def test_a_level_cane_is_not_a_cordon_and_a_cordon_running_on_into_a_cane_is_spl
     assert sk.branches[3].parent == 1 and np.isclose(sk.branches[3].points[-1, 0], 0.7)
 
 
-def test_a_cordon_running_on_past_a_hanging_shoot_stays_permanent_wood() -> None:
+@pytest.mark.parametrize(("r_trunk", "r_cordon"), [(0.02, 0.012), (0.026, 0.017)],
+                         ids=["thick-end", "tapering-end"])  # fmt: skip
+def test_a_cordon_running_on_past_a_hanging_shoot_stays_permanent_wood(
+    r_trunk: float, r_cordon: float
+) -> None:
     """The skeleton's chain ran from a cordon into a thin shoot hanging from its end, and the
-    cordon's last 30 cm hang from that shoot 8 cm on (the GDC vine's right cordon): split at the
-    shoot, the thick level piece continues the cordon, and a cane on it is cut counted from
-    it, not from 30 cm back."""
-    from vinetwin.scan.candidates import cut_candidates, label_kinds
-    from vinetwin.scan.frame import split_cordons
-    from vinetwin.twin.skeleton import Branch, Skeleton
-
-    line = np.linspace(0, 1, 60)[:, None]
-    z = np.array([0.0, 0.0, 1.0])
-    trunk = Branch(np.hstack([0 * line, 0 * line, 1.5 * line]), np.full(60, 0.02), "trunk")
-    # a 50 cm cordon (radius 12 mm), its chain then turning down into a shoot (radius 3 mm)
-    level = np.hstack([0.5 * line, 0 * line, 1.5 + 0 * line])
-    down = np.hstack([0.5 + 0.05 * line, 0 * line, 1.5 - 0.6 * line])[1:]
-    chain = Branch(np.vstack([level, down]), np.r_[np.full(60, 0.012), np.full(59, 0.003)],
-                   "cane", 0)  # fmt: skip
-    # the cordon's own end: 30 cm on from 8 cm down the shoot's path, thick and level
-    start = down[7]
-    rest = Branch(np.hstack([start[0] + 0.3 * line, 0 * line, start[2] + 0 * line + 0.0]),
-                  np.full(60, 0.011), "cane", 1)  # fmt: skip
-    cane = Branch(np.hstack([0.7 + 0 * line, 0 * line, start[2] + 0.5 * line]),
-                  np.full(60, 0.004), "cane", 2)  # fmt: skip
-    sk = Skeleton([trunk, chain, rest, cane])
-    split_cordons(sk, z)
-    label_kinds(sk, z, "vine")
-    kinds = [b.kind for b in sk.branches]
-    assert kinds[:3] == ["trunk", "cordon", "cordon"], kinds
-    assert sk.branches[2].parent == 1  # hangs from the cordon now, not from the shoot
-    cut = next(c for c in cut_candidates(sk, "vine", 0.07) if c.branch == 3)
-    want = start[2] + 0.011 + 0.0175 + 1.3 * 0.07  # off the continued cordon's surface
-    assert abs(cut.point[2] - want) < 2e-3, (cut.point, want)
-
-
-def test_a_tapering_cordons_end_continues_it() -> None:
-    """A cordon tapers: the GDC vine's right cordon (17 mm in its scans, the trunk 26 mm) curls
-    on at 10-12.5 mm, under half the trunk's radius, from a shoot hanging at its end. Judged
-    against the cordon's own radius (`CONTINUE_RADIUS`), that end continues the cordon and a
-    cane on it is cut counted from it."""
+    cordon's last 30 cm (11 mm) hang from that shoot 8 cm on (the GDC vine's right cordon):
+    split at the shoot, the thick level piece continues the cordon, and a cane on it is cut
+    counted from it, not from 30 cm back. "tapering-end": the cordon tapers (17 mm, the trunk
+    26 mm, as in the GDC vine's scans), so its 11 mm end is under half the trunk's radius
+    (`CORDON_RADIUS`) but not under `CONTINUE_RADIUS` of the cordon's own, and continues it."""
     from vinetwin.scan.candidates import CONTINUE_RADIUS, CORDON_RADIUS, label_kinds
     from vinetwin.scan.frame import split_cordons
     from vinetwin.twin.skeleton import Branch, Skeleton
 
     line = np.linspace(0, 1, 60)[:, None]
     z = np.array([0.0, 0.0, 1.0])
-    trunk = Branch(np.hstack([0 * line, 0 * line, 1.5 * line]), np.full(60, 0.026), "trunk")
+    trunk = Branch(np.hstack([0 * line, 0 * line, 1.5 * line]), np.full(60, r_trunk), "trunk")
+    # a 50 cm cordon, its chain then turning down into a shoot (radius 3-4 mm)
     level = np.hstack([0.5 * line, 0 * line, 1.5 + 0 * line])
     down = np.hstack([0.5 + 0.05 * line, 0 * line, 1.5 - 0.6 * line])[1:]
-    chain = Branch(np.vstack([level, down]), np.r_[np.full(60, 0.017), np.full(59, 0.004)],
+    r_shoot = 0.003 if r_cordon < 0.015 else 0.004
+    chain = Branch(np.vstack([level, down]), np.r_[np.full(60, r_cordon), np.full(59, r_shoot)],
                    "cane", 0)  # fmt: skip
+    # the cordon's own end: 30 cm on from 8 cm down the shoot's path, thick and level
     start = down[7]
     rest = Branch(np.hstack([start[0] + 0.3 * line, 0 * line, start[2] + 0 * line]),
                   np.full(60, 0.011), "cane", 1)  # fmt: skip
     cane = Branch(np.hstack([0.7 + 0 * line, 0 * line, start[2] + 0.5 * line]),
                   np.full(60, 0.004), "cane", 2)  # fmt: skip
-    assert CONTINUE_RADIUS * 0.017 <= 0.011 < CORDON_RADIUS * 0.026
+    if r_cordon > 0.015:
+        assert CONTINUE_RADIUS * r_cordon <= 0.011 < CORDON_RADIUS * r_trunk
     sk = Skeleton([trunk, chain, rest, cane])
     split_cordons(sk, z)
     label_kinds(sk, z, "vine")
     kinds = [b.kind for b in sk.branches]
     assert kinds[:3] == ["trunk", "cordon", "cordon"], kinds
+    assert sk.branches[2].parent == 1  # hangs from the cordon now, not from the shoot
     cut = next(c for c in cut_candidates(sk, "vine", 0.07) if c.branch == 3)
     want = start[2] + 0.011 + 0.0175 + 1.3 * 0.07  # off the continued cordon's surface
     assert abs(cut.point[2] - want) < 2e-3, (cut.point, want)

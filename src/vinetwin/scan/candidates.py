@@ -85,6 +85,9 @@ head (starts within `HEAD` of the trunk's top)."""
 HEAD = 0.06
 """How near the trunk's top (m) an arm starts."""
 
+ARM_RISE = 0.64
+"""An arm is level: it rises by at most this share of its length (sin 40 degrees)."""
+
 CONTINUE_WITHIN = 0.10
 """How near a cordon's end (m) a branch must start to be taken for its continuation."""
 
@@ -123,7 +126,7 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
             parent_kind = sk.branches[b.parent].kind
             thick = float(np.median(b.radii)) >= CORDON_RADIUS * r_trunk
             rise = abs(float((b.points[-1] - b.points[0]) @ up)) / max(b.length, 1e-9)
-            arm = (b.length >= ARM_MIN and bool(children[i]) and rise < 0.64
+            arm = (b.length >= ARM_MIN and bool(children[i]) and rise < ARM_RISE
                    and float(np.linalg.norm(b.points[0] - head)) <= HEAD)  # fmt: skip
             cordon = parent_kind in ("trunk", "cordon") and b.length > 0.15 and flat < 0.5
             pb = sk.branches[b.parent]  # a cordon's continuation from its end, tapering

@@ -9,6 +9,14 @@ import numpy as np
 
 from vinetwin.errors import InputError
 from vinetwin.frames import Array
+from vinetwin.scan.candidates import (
+    ARM_MIN,
+    ARM_RISE,
+    CONTINUE_RADIUS,
+    CONTINUE_WITHIN,
+    CORDON_RADIUS,
+    HEAD,
+)
 from vinetwin.twin.skeleton import Branch, Skeleton, arc_length
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -128,8 +136,6 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
     `candidates.CORDON_RADIUS` of the trunk's radius (where the skeleton followed the cordon on
     into the cane or shoot of its last spur); in place. The rest becomes a branch of its own,
     hanging from the cordon's end, appended (the order stays parents-first)."""
-    from vinetwin.scan.candidates import CORDON_RADIUS, HEAD
-
     roots = {i for i, b in enumerate(sk.branches) if b.parent < 0}
     r_ref = CORDON_RADIUS * float(np.median(sk.branches[min(roots)].radii)) if roots else 0.0
     heads = [sk.branches[j].points[-1] for j in roots]
@@ -163,22 +169,25 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
     _continue_cordons(sk, up, roots, r_ref)
 
 
+def _window_median(s: Array, r: Array, window: float) -> Array:
+    """Each point's radius as the median over `window` (m of arc) either side."""
+    lo = np.searchsorted(s, s - window)
+    hi = np.searchsorted(s, s + window, side="right")
+    return np.array([np.median(r[a:b]) for a, b in zip(lo, hi, strict=True)])
+
+
 def _arm_end(P: Array, s: Array, r: Array, up: Array, r_ref: float,
              window: float = 0.03) -> int | None:  # fmt: skip
     """The index where a branch's thick, level start ends (its radius, a median over
     `window` either side, below `r_ref` from there on for `ARM_MIN`), when that start is at
     least `ARM_MIN` long,
-    level (within 40 degrees of horizontal) and followed by at least 5 cm more; else None.
+    level (`ARM_RISE`: within 40 degrees of horizontal) and followed by at least 5 cm more; else None.
     Measured on the head-trained `vsp_ww` vine's scans: its 22 cm arm (12.5 mm in radius, the
     trunk 20 mm) came out 12-15 mm thick for 7-20 cm and then 4-6 mm along the shoot the
     skeleton's chain ran on into, with dips to 9 mm (under `r_ref`) for 4 cm within the arm."""
-    from vinetwin.scan.candidates import ARM_MIN
-
     if r_ref <= 0 or s[-1] < ARM_MIN + 0.05:
         return None
-    lo = np.searchsorted(s, s - window)
-    hi = np.searchsorted(s, s + window, side="right")
-    w = np.array([np.median(r[a:b]) for a, b in zip(lo, hi, strict=True)])
+    w = _window_median(s, r, window)
     # the first point from which it stays thin for `ARM_MIN` on (a dip of the scan's radius
     # within the arm, as where a shoot leaves it, is not its end)
     thick = np.r_[0, np.cumsum(w >= r_ref)]
@@ -187,7 +196,7 @@ def _arm_end(P: Array, s: Array, r: Array, up: Array, r_ref: float,
     k = int(stays[0]) if len(stays) else len(s)
     if k >= len(s) or s[k] < ARM_MIN or s[-1] - s[k] < 0.05:
         return None
-    if abs(float((P[k] - P[0]) @ up)) > 0.64 * s[k]:  # rises by over 40 degrees along it
+    if abs(float((P[k] - P[0]) @ up)) > ARM_RISE * s[k]:  # rises by over 40 degrees along it
         return None
     return k
 
@@ -226,8 +235,6 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
     thins for good (a cordon tapers: thick by `candidates.CONTINUE_RADIUS` of the cordon's own
     radius where that is under `r_ref`). Repeated from each new piece; in place, parents
     first."""
-    from vinetwin.scan.candidates import CONTINUE_RADIUS, CONTINUE_WITHIN
-
     queue = [i for i, b in enumerate(sk.branches)
              if b.parent in roots and _level_and_thick(b, up, r_ref)]  # fmt: skip
     done = set(queue) | roots
@@ -255,9 +262,7 @@ def _thin_from(s: Array, r: Array, r_ref: float, window: float = 0.03) -> int | 
     from there on, at least 15 cm from its start and 5 cm before its end; None if it does not."""
     if r_ref <= 0 or s[-1] < 0.2 or float(np.median(r[s <= 0.15])) < r_ref:
         return None
-    lo = np.searchsorted(s, s - window)
-    hi = np.searchsorted(s, s + window, side="right")
-    w = np.array([np.median(r[a:b]) for a, b in zip(lo, hi, strict=True)])
+    w = _window_median(s, r, window)
     thick = np.flatnonzero(w >= r_ref)
     k = int(thick[-1]) + 1 if len(thick) else 0
     if k >= len(s) or s[k] < 0.15 or s[-1] - s[k] < 0.05:
