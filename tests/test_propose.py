@@ -75,6 +75,20 @@ def test_spur_rule_on_a_known_vine() -> None:
     assert min(np.linalg.norm(c.point - _upright_cut(0.3, 3)) for c in three) < 1e-3
 
 
+def test_a_removed_cane_longer_than_the_kept_one_is_cut_where_they_part() -> None:
+    """The leaning cane of spur 1 made the longest: it is still cut where it parts from the
+    kept upright cane, not where the spur leaves the cordon (which would take the kept cane with
+    it)."""
+    sk = known_vine()
+    lean = next(b for b in sk.branches if b.label == "cane0.1-1")
+    fork = lean.points[0]
+    lean.points = fork + np.linspace(0.0, 1.0, 60)[:, None] * 0.5 * np.array([-1, 0, 1]) / math.sqrt(2)
+    cuts = propose_cuts(sk, RuleConfig(rule="spur", buds=2))
+    r = next(c for c in cuts if c.action == "remove")
+    assert "cane0.1-1" in r.reason and "kept: cane0.1-0" in r.reason
+    assert np.linalg.norm(r.point - fork) == pytest.approx(0.018 / math.sin(math.pi / 4), abs=0.003)
+
+
 def test_spur_rule_with_a_stated_internode_counts_from_the_cordon() -> None:
     """Without the skeleton's nodes (as on a scan), bud k sits FIRST_NODE + (k-1) internodes
     past the cordon's surface."""

@@ -637,3 +637,27 @@ def test_the_web_app_opens_a_scanned_twin_with_its_candidates(
         assert hit is not None and np.linalg.norm(hit[0].point - cut) < 0.012
     finally:
         app.close()
+
+
+def test_a_tree_candidate_does_not_depend_on_how_finely_its_branches_are_sampled() -> None:
+    """A measured tree's branches are cylinders up to 50 cm long. A lateral, drawn as one 30 cm
+    segment, leaves the leader beside a short 8 cm twig at 15 degrees: how far it stands off the
+    rest of the plant is not linear along it, and its cut must sit where it first stands 3 cm
+    off (`CANDIDATE_OFFSET`) however finely the lateral is sampled."""
+    from vinetwin.twin.skeleton import Branch
+
+    def tree(n: int) -> Skeleton:
+        sk = Skeleton()
+        sk.branches.append(Branch(np.linspace([0, 0, 0], [0, 0, 1.0], 2), np.full(2, 0.02),
+                                  "trunk"))  # fmt: skip
+        fork = np.array([0.0, 0.0, 0.5])
+        for length, deg, k in ((0.3, 45.0, n), (0.08, 60.0, 2)):
+            d = np.array([np.sin(np.radians(deg)), 0.0, np.cos(np.radians(deg))])
+            sk.branches.append(Branch(fork + np.linspace(0, length, k)[:, None] * d,
+                                      np.full(k, 0.005), "branch", parent=0))  # fmt: skip
+        return sk
+
+    coarse = [c for c in cut_candidates(tree(2), "tree", 0.07) if c.branch == 1]
+    fine = [c for c in cut_candidates(tree(301), "tree", 0.07) if c.branch == 1]
+    assert len(coarse) == len(fine) == 1
+    assert np.linalg.norm(coarse[0].point - fine[0].point) < 0.002

@@ -59,6 +59,32 @@ def test_cylinder_lists_import_with_matching_extent(name: str) -> None:
     hi = np.maximum(s + ext, s + a + ext).max(0)
     V, _F = tube_mesh(sk, edge=0.006, caps="flat")
     np.testing.assert_allclose(np.stack([V.min(0), V.max(0)]), np.stack([lo, hi]), atol=1e-3)
+    assert [i for i, b in enumerate(sk.branches) if b.parent < 0] == [0]  # one tree, no loop
+    assert all(root_of(sk, i) == 0 for i in range(len(sk.branches)))
+
+
+def root_of(sk: Skeleton, i: int) -> int:
+    """The branch that `i`'s chain of parents ends at; -1 when the chain loops."""
+    seen: set[int] = set()
+    while sk.branches[i].parent >= 0:
+        if i in seen:
+            return -1
+        seen.add(i)
+        i = sk.branches[i].parent
+    return i
+
+
+def test_two_laterals_from_one_point_hang_in_the_tree_not_from_each_other(tmp_path: Path) -> None:
+    """Two laterals leaving the trunk from one point 1 mm off its axis (as in the Tall Spindle
+    apple's file): each one's start lies on the other, and the nearest branch alone made them
+    each other's parent, a loop that left both out of the tree."""
+    rows = ["0 0 0 0 0 0.6 0.02",  # the trunk
+            "0.001 0 0.3 0.1 0 0.05 0.005", "0.001 0 0.3 -0.1 0 0.05 0.005"]  # fmt: skip
+    p = tmp_path / "tree.txt"
+    p.write_text(f"{len(rows)}\n" + "\n".join(rows) + "\n")
+    sk = read_cylinders(p)
+    assert [b.parent for b in sk.branches] == [-1, 0, 1]
+    assert all(root_of(sk, i) == 0 for i in range(3))
 
 
 def test_generator_is_deterministic_per_seed() -> None:

@@ -59,6 +59,10 @@ MAX_PARTING = 0.18
 MIN_SHOOT = 0.03
 #: The cut sits this share of the way from the last kept bud to the next.
 BETWEEN_BUDS = 0.3
+#: A shoot's path is sampled this finely (m).
+SHOOT_STEP = 0.002
+#: A cane's axis at a cut is the chord over this much (m) either side of it.
+AXIS_HALF = 0.01
 #: Half the length of cane (m) around a cut whose visibility the pose search scores.
 CANE_WINDOW = 0.05
 
@@ -100,8 +104,8 @@ class Shoot:
         """Point, unit axis and radius at arc position s."""
         P, a = self.points, self.arc
         p = np.array([np.interp(s, a, P[:, d]) for d in range(3)])
-        k = int(np.clip(np.searchsorted(a, s), 1, len(P) - 1))
-        lo, hi = max(k - 2, 0), min(k + 2, len(P) - 1)
+        lo = int(np.clip(np.searchsorted(a, s - AXIS_HALF), 0, len(P) - 2))
+        hi = int(np.clip(np.searchsorted(a, s + AXIS_HALF), lo + 1, len(P) - 1))
         axis = P[hi] - P[lo]
         axis /= max(float(np.linalg.norm(axis)), 1e-12)
         return p, axis, float(np.interp(s, a, self.radii))
@@ -151,6 +155,10 @@ def shoots(sk: Skeleton) -> list[Shoot]:
     for P, R, wood_r, b in tip_paths(sk, "permanent" if vine else "fork"):
         if sk.branches[b].parent < 0 or len(P) < 2:
             continue
+        # every `SHOOT_STEP`: how far a path stands off the wood, and how far it is from its
+        # neighbours, are not linear between a skeleton's points (hydroshoot's nodes are 6-9 cm
+        # apart, a measured tree's cylinders up to 50 cm)
+        P, R = resample(P, R, SHOOT_STEP)
         s = Shoot(P, R, wood_r, b, sk.branches[b].label or f"branch{b}", standoff=off(P))
         if s.reach[-1] - wood_r < MIN_SHOOT:
             continue
@@ -327,7 +335,11 @@ def propose_cuts(sk: Skeleton, cfg: RuleConfig, up: Array | None = None) -> list
             if i == kept:
                 continue
             s = ss[i]
-            out.append(_cut(s, s.part, "remove",
+            # where it parts from the kept cane (never inside their shared wood: when it is
+            # the longest of its spur, its own parting is from the permanent wood)
+            k = ss[kept]
+            a = max(s.part, _first_clear(s, [resample(k.points, k.radii)])[0])
+            out.append(_cut(s, a, "remove",
                             f"{spur_name}: {s.label} removed at its base (kept: {ss[kept].label})",
                             s.label))  # fmt: skip
 

@@ -143,6 +143,11 @@ def approaches(cane_axis: Array, cfg: SearchConfig, fine: int = 1) -> list[Appro
     return out
 
 
+def _dot3(A: Array, B: Array) -> Array:
+    """`A @ B.T` for (N, 3) and (D, 3) arrays, as three broadcast products."""
+    return A[:, :1] * B[:, 0] + A[:, 1:2] * B[:, 1] + A[:, 2:3] * B[:, 2]
+
+
 def _clearances(
     obs: VineObstacles, cut: Array, axis: Array, aps: list[Approach], cfg: SearchConfig
 ) -> Array:
@@ -161,8 +166,10 @@ def _clearances(
     for j0 in range(0, len(aps), 64):
         Ts = np.stack([pruning_pose(cut, axis, ap) for ap in aps[j0 : j0 + 64]])
         Z, O = Ts[:, :3, 2], Ts[:, :3, 3]
-        t = Q @ Z.T - np.einsum("dj,dj->d", O, Z)  # (N, D): along each optical axis
-        perp2 = Q2 - 2 * Q @ O.T + (O * O).sum(1)[None] - t * t
+        # (N, D) products over 3 coordinates, written out: no BLAS call, whose worker threads
+        # spin against a busy second core (a web-app propose once ran for minutes beside Chromium)
+        t = _dot3(Q, Z) - np.einsum("dj,dj->d", O, Z)  # along each optical axis
+        perp2 = Q2 - 2 * _dot3(Q, O) + (O * O).sum(1)[None] - t * t
         near = (t > -d - corridor) & (t < cfg.standoff + corridor) & (perp2 < corridor**2)
         for i in np.nonzero(near.any(axis=0))[0]:
             k = near[:, i]

@@ -35,9 +35,14 @@ from vinetwin.twin.skeleton import (
     CutCandidate,
     Skeleton,
     arc_length,
+    resample,
     standoff,
     tip_paths,
 )
+
+
+REACH_STEP = 0.002
+"""How finely (m) a tip's path is sampled to find where it stands the rule's offset off the wood."""
 
 
 def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[CutCandidate]:
@@ -51,14 +56,19 @@ def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[Cut
         if sk.branches[branch].parent < 0:
             continue  # the trunk's own top
         s = arc_length(P)
-        reach = np.maximum.accumulate(wood(P))  # how far it stands off the wood it grows from
+        # how far it stands off the wood it grows from, every `REACH_STEP` along it: that
+        # distance is not linear between a skeleton's points (a digitised cane's nodes are
+        # 7 cm apart, a measured tree's cylinders up to 25 cm)
+        Pd = resample(P, R, REACH_STEP)[0]
+        sd = arc_length(Pd)
+        reach = np.maximum.accumulate(wood(Pd))
         want = offset
         if reach[-1] < want + 0.02:
             continue
-        k = int(np.clip(np.searchsorted(reach, want), 1, len(P) - 1))
+        k = int(np.clip(np.searchsorted(reach, want), 1, len(Pd) - 1))
         f = (want - reach[k - 1]) / max(reach[k] - reach[k - 1], 1e-12)
-        point = P[k - 1] + f * (P[k] - P[k - 1])
-        want = s[k - 1] + f * (s[k] - s[k - 1])
+        point = Pd[k - 1] + f * (Pd[k] - Pd[k - 1])
+        want = sd[k - 1] + f * (sd[k] - sd[k - 1])
         if any(np.linalg.norm(c.point - point) < 0.01 for c in out):
             continue
         k = int(np.clip(np.searchsorted(s, want), 1, len(P) - 1))
