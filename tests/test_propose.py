@@ -82,7 +82,9 @@ def test_a_removed_cane_longer_than_the_kept_one_is_cut_where_they_part() -> Non
     sk = known_vine()
     lean = next(b for b in sk.branches if b.label == "cane0.1-1")
     fork = lean.points[0]
-    lean.points = fork + np.linspace(0.0, 1.0, 60)[:, None] * 0.5 * np.array([-1, 0, 1]) / math.sqrt(2)
+    lean.points = fork + np.linspace(0.0, 1.0, 60)[:, None] * 0.5 * np.array(
+        [-1, 0, 1]
+    ) / math.sqrt(2)
     cuts = propose_cuts(sk, RuleConfig(rule="spur", buds=2))
     r = next(c for c in cuts if c.action == "remove")
     assert "cane0.1-1" in r.reason and "kept: cane0.1-0" in r.reason

@@ -40,7 +40,6 @@ from vinetwin.twin.skeleton import (
     tip_paths,
 )
 
-
 REACH_STEP = 0.002
 """How finely (m) a tip's path is sampled to find where it stands the rule's offset off the wood."""
 
