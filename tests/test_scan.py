@@ -661,3 +661,57 @@ def test_a_tree_candidate_does_not_depend_on_how_finely_its_branches_are_sampled
     fine = [c for c in cut_candidates(tree(301), "tree", 0.07) if c.branch == 1]
     assert len(coarse) == len(fine) == 1
     assert np.linalg.norm(coarse[0].point - fine[0].point) < 0.002
+
+
+def test_refining_moves_a_fork_s_leaning_centres_back_onto_the_axes() -> None:
+    """A limb (12 mm) with a lateral (7 mm) leaving at 35 degrees, scanned as points on their
+    surfaces with 1 mm of noise; the skeleton's centres near the fork lean 4 mm towards the
+    other branch and its radii there are 4 mm too thick, as a level set's slices holding both
+    branches make them (`scan.refine`). Re-fitted, they lie within 2 mm of the true axes and
+    radii (the lateral's from its second node: its first joins the limb's axis)."""
+    from scipy.spatial import cKDTree
+
+    from vinetwin.scan.read import sample_mesh_surface
+    from vinetwin.scan.refine import refine_axes
+    from vinetwin.twin.skeleton import Branch, axis_samples
+
+    rng = np.random.default_rng(3)
+    fork = np.array([0.0, 0.0, 0.3])
+    d = np.array([np.sin(np.radians(35)), 0.0, np.cos(np.radians(35))])
+    truth = Skeleton()
+    truth.branches.append(Branch(np.linspace([0, 0, 0], [0, 0, 0.6], 61), np.full(61, 0.012),
+                                 "trunk"))  # fmt: skip
+    truth.branches.append(Branch(fork + np.linspace(0, 0.25, 26)[:, None] * d, np.full(26, 0.007),
+                                 "branch", parent=0))  # fmt: skip
+    V, F = tube_mesh(truth, edge=0.002, caps="round")
+    pts = sample_mesh_surface(V, F, 0.002, rng)
+    pts = pts + rng.normal(0.0, 0.001, pts.shape)
+    ours = Skeleton()
+    for b in truth.branches:
+        ours.branches.append(Branch(b.points.copy(), b.radii.copy(), b.kind, parent=b.parent))
+    across = np.array([-d[2], 0.0, d[0]])  # from the lateral towards the limb
+    for b, towards in ((ours.branches[0], np.array([1.0, 0, 0])), (ours.branches[1], across)):
+        near = np.linalg.norm(b.points - fork, axis=1) < 0.03
+        near[0] = near[0] and b.parent < 0
+        b.points[near] += 0.004 * towards
+        b.radii[near] += 0.004
+
+    def worst(sk: Skeleton) -> tuple[float, float]:
+        """Largest distance of a branch's centres from its own true axis, and radius error."""
+        off = rad = 0.0
+        for i in (0, 1):
+            A, rA = axis_samples(truth, keep=lambda k: k == i, step=0.002)  # noqa: B023
+            B, rB = axis_samples(sk, keep=lambda k: k == i, step=0.002)  # noqa: B023
+            if i == 1:  # past the segment joining its first node to the limb's axis
+                rB, B = (
+                    rB[np.linalg.norm(B - fork, axis=1) > 0.012],
+                    B[np.linalg.norm(B - fork, axis=1) > 0.012],
+                )
+            dist, j = cKDTree(A).query(B)
+            off, rad = max(off, float(dist.max())), max(rad, float(np.abs(rB - rA[j]).max()))
+        return off, rad
+
+    assert worst(ours)[0] > 0.0035 and worst(ours)[1] > 0.0035
+    refine_axes(ours, pts)
+    off, rad = worst(ours)
+    assert off < 0.002 and rad < 0.002, (off, rad)

@@ -73,8 +73,12 @@ class SkeletonConfig:
     """Largest hole (m) bridged between pieces of the plant (a cane hidden behind another)."""
     min_branch: float = 0.03
     """A side branch shorter than this (m) is noise at a junction and is dropped."""
+    refine: int = 2
+    """Passes re-fitting each branch's centres and radii to its own points (`scan.refine`:
+    centres near a fork no longer lean towards the other branch); 0 leaves the level sets'."""
 
     def __post_init__(self) -> None:
+        check_counts(self, ("refine",), 5)
         check_finite(self, ("voxel", "bin"))
         check_finite(self, ("gap", "min_branch"), positive=True)
         for name, hi in (("voxel", 0.05), ("bin", 0.2), ("gap", 0.2), ("min_branch", 0.5)):

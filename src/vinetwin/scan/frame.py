@@ -134,7 +134,8 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
     """Splits each branch growing from the trunk that runs level for at least 15 cm (a cordon)
     where it turns up or down by more than 40 degrees, or where it thins for good below
     `candidates.CORDON_RADIUS` of the trunk's radius (where the skeleton followed the cordon on
-    into the cane or shoot of its last spur); in place. The rest becomes a branch of its own,
+    into the cane or shoot of its last spur), or, first of all, where an arm's thick start ends
+    (`_arm_end`, from 5 cm); in place. The rest becomes a branch of its own,
     hanging from the cordon's end, appended (the order stays parents-first)."""
     roots = {i for i, b in enumerate(sk.branches) if b.parent < 0}
     r_ref = CORDON_RADIUS * float(np.median(sk.branches[min(roots)].radii)) if roots else 0.0
@@ -161,8 +162,11 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
         k_thin = _thin_from(s, b.radii, r_ref)
         if k_thin is not None and (k_split is None or k_thin < k_split):
             k_split = k_thin
-        if k_split is None:
-            k_split = _arm_end(P, s, b.radii, up, r_ref)
+        # a head-trained arm thins before 15 cm: the first of the three ends (on the VSP
+        # vine the skeleton's arm ran on level into a cane until it turned up 5 cm later)
+        k_arm = _arm_end(P, s, b.radii, up, r_ref)
+        if k_arm is not None and (k_split is None or k_arm < k_split):
+            k_split = k_arm
         if k_split is None:
             continue
         _split_at(sk, i, k_split)

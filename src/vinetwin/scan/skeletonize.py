@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 from vinetwin.errors import ScanError
 from vinetwin.frames import Array
 from vinetwin.scan.config import PlantKind, SkeletonConfig
+from vinetwin.scan.refine import refine_axes
 from vinetwin.scan.unzip import unzip_forks
 from vinetwin.twin.skeleton import Branch, Skeleton, nearest_on_polyline
 
@@ -205,6 +206,7 @@ def skeletonize(
     sk = tree.skeleton()
     if plant == "vine":  # canes of one spur running side by side (see `scan.unzip`)
         unzip_forks(sk, points[~stray_mask], float(np.clip(0.5 * voxel, 0.0015, 0.004)))
+    refine_axes(sk, points[~stray_mask], cfg.refine)  # forks' leaning centres (`scan.refine`)
     if not sk.branches:
         raise ScanError("no skeleton could be found: the scan holds no branching plant")
     return SkeletonResult(sk, voxel, binw, int(stray_mask.sum()), bridges, stray_mask, found_up,
