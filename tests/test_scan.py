@@ -494,6 +494,31 @@ def test_a_head_trained_vines_arm_on_the_chain_of_a_shoot_is_permanent_wood() ->
     assert "cordon" not in [b.kind for b in sk.branches]
 
 
+def test_an_arm_on_the_trunk_s_chain_ends_where_it_thins_before_it_turns_up() -> None:
+    """The trunk's chain runs on level into a 12 cm arm (12.5 mm), then 6 cm more of a thin
+    cane (4 mm) before the cane turns up: the arm ends where it thins (`_arm_end`), not where
+    the chain turns up 6 cm later inside the cane (the VSP vine's arm with re-fitted radii)."""
+    from vinetwin.scan.candidates import label_kinds
+    from vinetwin.scan.frame import split_cordons
+    from vinetwin.twin.skeleton import Branch, Skeleton
+
+    line = np.linspace(0, 1, 60)[:, None]
+    z = np.array([0.0, 0.0, 1.0])
+    trunk = Branch(np.hstack([0 * line, 0 * line, 0.7 * line]), np.full(60, 0.02), "trunk")
+    arm = np.hstack([0.12 * line, 0 * line, 0.7 + 0 * line])
+    level = np.hstack([0.12 + 0.06 * line, 0 * line, 0.7 + 0 * line])[1:]
+    up = np.hstack([0.18 + 0 * line, 0 * line, 0.7 + 0.4 * line])[1:]
+    chain = Branch(np.vstack([arm, level, up]), np.r_[np.full(60, 0.0125), np.full(118, 0.004)],
+                   "cane", 0)  # fmt: skip
+    cane = Branch(np.hstack([0.06 + 0 * line, 0 * line, 0.7 + 0.4 * line]), np.full(60, 0.004),
+                  "cane", 1)  # fmt: skip
+    sk = Skeleton([trunk, chain, cane])
+    split_cordons(sk, z)
+    label_kinds(sk, z, "vine")
+    assert sk.branches[1].kind == "cordon"
+    assert 0.10 <= sk.branches[1].points[-1, 0] <= 0.14, sk.branches[1].points[-1]
+
+
 def test_touching_canes_are_parted_where_they_part(monkeypatch: pytest.MonkeyPatch) -> None:
     """Two canes (radius 4 mm, 1 mm apart) leave a spur's top (on a 15 mm trunk) at 5.8 cm and
     run side by side to 17 cm, where one turns 35 degrees away: the level sets part them only there; unzipping
