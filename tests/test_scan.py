@@ -257,6 +257,8 @@ def test_settings_out_of_range_are_named() -> None:
         SkeletonConfig(gap=float("nan"))
     with pytest.raises(InputError, match="voxel"):
         SkeletonConfig(voxel=1.0)
+    with pytest.raises(InputError, match="refine"):
+        SkeletonConfig(refine=9)
 
 
 # ------------------------------------------------------------------------------ cleaning
