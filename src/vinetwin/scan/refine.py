@@ -8,7 +8,7 @@ percentile) off the true axis 1-3 cm from a fork, against 1.7 mm elsewhere. A cu
 places a cut where a shoot stands 3 cm off the rest of the plant then places it 1-2 cm off.
 
 Here every scan point goes to the branch whose surface (axis distance less radius) is nearest,
-and each node of a branch is re-fitted (`skeletonize._circle`) to that branch's points in the
+and each node of a branch is re-fitted (`circle_fit`, the skeleton's own fit) to that branch's points in the
 slab across it between its neighbours' midpoints: a child's points no longer pull the parent.
 A node keeps its place when its slab holds fewer than `MIN_POINTS` points or the fit would move
 it farther than its radius (a slab that is mostly another branch's). Children then start on
@@ -22,6 +22,8 @@ apple. It costs about 3 s per pass on a 355k-point tree scan.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -37,6 +39,35 @@ REACH_RADII = 2.0
 REACH_PAD = 0.003
 #: Nearest axis samples compared per point (the nearest surface is among them).
 NEIGHBOURS = 8
+
+
+def circle_fit(points: Array, centre: Array, t: Array) -> tuple[Array, float]:
+    """Centre and radius of a branch's cross-section from its points: a circle fitted in the
+    plane across `t`, when sound; else the centroid and the median distance from it."""
+    u = np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(t, u)
+    q = points - centre
+    x, y = q @ u, q @ v
+    r0 = float(np.median(np.hypot(x, y)))
+    if len(points) >= 10:
+        # the algebraic circle fit's least squares by its 3 x 3 normal equations (an SVD per
+        # slice was most of a large tree's skeleton time)
+        A = np.column_stack([2 * x, 2 * y, np.ones_like(x)])
+        try:
+            sol = np.linalg.solve(A.T @ A, A.T @ (x * x + y * y))
+        except np.linalg.LinAlgError:
+            sol = np.zeros(3)
+        a, b, c = (float(v) for v in sol)
+        rr = c + a * a + b * b
+        if rr > 0 and np.all(np.isfinite(sol)):
+            r = math.sqrt(rr)
+            ang = np.sort(np.arctan2(y - b, x - a))
+            steps = np.diff(np.concatenate([ang, [ang[0] + 2 * math.pi]])).astype(np.float64)
+            cover = 2 * math.pi - float(steps.max())
+            if 0.5 * r0 <= r <= 2.0 * max(r0, 1e-4) and math.hypot(a, b) < 2 * r and cover > 2.0:
+                return centre + a * u + b * v, r
+    return centre, max(r0, 1e-4)
 
 
 def _assign(sk: Skeleton, points: Array) -> tuple[Array, Array, Array]:
@@ -65,8 +96,6 @@ def _assign(sk: Skeleton, points: Array) -> tuple[Array, Array, Array]:
 def refine_axes(sk: Skeleton, points: Array, passes: int = 2) -> None:
     """Re-fits the skeleton's centres and radii to the points (see the module's docstring);
     in place."""
-    from vinetwin.scan.skeletonize import _circle
-
     for _ in range(passes):
         if not sk.branches or len(points) < MIN_POINTS:
             return
@@ -88,7 +117,7 @@ def refine_axes(sk: Skeleton, points: Array, passes: int = 2) -> None:
                     continue
                 t = b.points[min(v + 1, n - 1)] - b.points[max(v - 1, 0)]
                 t = t / max(float(np.linalg.norm(t)), 1e-12)
-                c, r = _circle(q, b.points[v], t)
+                c, r = circle_fit(q, b.points[v], t)
                 if np.linalg.norm(c - b.points[v]) <= b.radii[v] + 0.001:
                     P[v], R[v] = c, r
             if n >= 5:

@@ -23,7 +23,6 @@ and over a 3D thinning of a voxel grid (breaks at 1-3 cm gaps and doubled surfac
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,7 +34,7 @@ from scipy.spatial import cKDTree
 from vinetwin.errors import ScanError
 from vinetwin.frames import Array
 from vinetwin.scan.config import PlantKind, SkeletonConfig
-from vinetwin.scan.refine import refine_axes
+from vinetwin.scan.refine import circle_fit, refine_axes
 from vinetwin.scan.unzip import unzip_forks
 from vinetwin.twin.skeleton import Branch, Skeleton, nearest_on_polyline
 
@@ -120,35 +119,6 @@ def _bridge(
     _, lab = csgraph.connected_components(g, directed=False)
     main = np.bincount(lab).argmax()
     return g, bridges, lab == main
-
-
-def _circle(points: Array, centre: Array, t: Array) -> tuple[Array, float]:
-    """Centre and radius of a branch's cross-section from its points: a circle fitted in the
-    plane across `t`, when sound; else the centroid and the median distance from it."""
-    u = np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(t, u)
-    q = points - centre
-    x, y = q @ u, q @ v
-    r0 = float(np.median(np.hypot(x, y)))
-    if len(points) >= 10:
-        # the algebraic circle fit's least squares by its 3 x 3 normal equations (an SVD per
-        # slice was most of a large tree's skeleton time)
-        A = np.column_stack([2 * x, 2 * y, np.ones_like(x)])
-        try:
-            sol = np.linalg.solve(A.T @ A, A.T @ (x * x + y * y))
-        except np.linalg.LinAlgError:
-            sol = np.zeros(3)
-        a, b, c = (float(v) for v in sol)
-        rr = c + a * a + b * b
-        if rr > 0 and np.all(np.isfinite(sol)):
-            r = math.sqrt(rr)
-            ang = np.sort(np.arctan2(y - b, x - a))
-            steps = np.diff(np.concatenate([ang, [ang[0] + 2 * math.pi]])).astype(np.float64)
-            cover = 2 * math.pi - float(steps.max())
-            if 0.5 * r0 <= r <= 2.0 * max(r0, 1e-4) and math.hypot(a, b) < 2 * r and cover > 2.0:
-                return centre + a * u + b * v, r
-    return centre, max(r0, 1e-4)
 
 
 TRUST_TRUNK = 30.0
@@ -581,7 +551,7 @@ def _level_tree(
             t = centroid[c] - a
         if np.linalg.norm(t) < 1e-6:
             t = np.array([0.0, 0.0, 1.0])
-        centre[i], radius[i] = _circle(pts, centroid[c], t / np.linalg.norm(t))
+        centre[i], radius[i] = circle_fit(pts, centroid[c], t / np.linalg.norm(t))
     tree = _LevelTree(parent_k, centre, radius, reach[keep], geo_min[keep],
                       [members[c] for c in keep], P)  # fmt: skip
     tree.end_window = max(0.1, 3 * binw)
