@@ -41,6 +41,13 @@ REACH_PAD = 0.003
 NEIGHBOURS = 8
 
 
+def median5(x: Array) -> Array:
+    """Each row's median with its two neighbours either side (the ends padded with their own
+    value): the skeleton's smoothing of centres and radii along a branch."""
+    pad = np.pad(x, [(2, 2)] + [(0, 0)] * (x.ndim - 1), mode="edge")
+    return np.median(np.lib.stride_tricks.sliding_window_view(pad, 5, axis=0), axis=-1)
+
+
 def circle_fit(points: Array, centre: Array, t: Array) -> tuple[Array, float]:
     """Centre and radius of a branch's cross-section from its points: a circle fitted in the
     plane across `t`, when sound; else the centroid and the median distance from it."""
@@ -120,10 +127,7 @@ def refine_axes(sk: Skeleton, points: Array, passes: int = 2) -> None:
                 c, r = circle_fit(q, b.points[v], t)
                 if np.linalg.norm(c - b.points[v]) <= b.radii[v] + 0.001:
                     P[v], R[v] = c, r
-            if n >= 5:
-                pad = np.pad(R, 2, mode="edge")
-                R = np.median(np.lib.stride_tricks.sliding_window_view(pad, 5), axis=1)
-            b.points, b.radii = P, np.maximum(R, 5e-4)
+            b.points, b.radii = P, np.maximum(median5(R) if n >= 5 else R, 5e-4)
         for b in sk.branches:  # children start on their parent's new axis
             if b.parent >= 0 and len(b.points) >= 2:
                 b.points[0] = nearest_on_polyline(b.points[1], sk.branches[b.parent].points)[2]

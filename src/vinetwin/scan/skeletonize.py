@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 from vinetwin.errors import ScanError
 from vinetwin.frames import Array
 from vinetwin.scan.config import PlantKind, SkeletonConfig
-from vinetwin.scan.refine import circle_fit, refine_axes
+from vinetwin.scan.refine import circle_fit, median5, refine_axes
 from vinetwin.scan.unzip import unzip_forks
 from vinetwin.twin.skeleton import Branch, Skeleton, nearest_on_polyline
 
@@ -331,8 +331,7 @@ class _LevelTree:
             pts = self.centre[chain]
             rad = self.radius[chain]
             if len(pts) >= 5:  # a junction's node leans towards the side branch: median of 5
-                pad = np.pad(pts, ((2, 2), (0, 0)), mode="edge")
-                med = np.median(np.lib.stride_tricks.sliding_window_view(pad, 5, axis=0), axis=2)
+                med = median5(pts)
                 med[0], med[-1] = pts[0], pts[-1]
                 pts = med
             if len(pts) >= 3:  # smooth the centre line, ends kept
@@ -340,8 +339,7 @@ class _LevelTree:
                 sm[1:-1] = (pts[:-2] + 2 * pts[1:-1] + pts[2:]) / 4
                 pts = sm
             if len(rad) >= 5:
-                pad = np.pad(rad, 2, mode="edge")
-                rad = np.median(np.lib.stride_tricks.sliding_window_view(pad, 5), axis=1)
+                rad = median5(rad)
             # extend the tip to the farthest point of the last node
             tip_pts = self.P[self.members[chain[-1]]]
             if len(pts) >= 2:

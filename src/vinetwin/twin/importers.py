@@ -421,9 +421,9 @@ def _cylinder_candidates(sk: Skeleton) -> None:
     """Parents and the candidates of `read_cylinders`' rule. A branch's parent is the branch
     whose axis passes nearest its first point (within 2 radii), among the branches before it
     in the file when one is that near (cylinder lists, Tree-Models-Library's and TreeQSM's,
-    write a parent before its children), else among those that do not make a loop: where a
-    chain of cylinders is split at a jump of radius, each piece's start lies on the other, and
-    the nearest alone made the two each other's parent (41 of the nectarine's 437 branches)."""
+    write a parent before its children), else among those that do not make a loop: where two
+    laterals leave one point, each one's start lies on the other, and the nearest alone made the
+    two each other's parent (41 of the nectarine's 437 branches were in such loops)."""
     for idx, b in enumerate(sk.branches):
         base = b.points[0]
         tol = 2 * max(float(b.radii[0]), 1e-3) + 1e-3
