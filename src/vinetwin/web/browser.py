@@ -4,6 +4,9 @@ Debian's `chromium`)."""
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
 from pathlib import Path
 from typing import Any, Literal
 
@@ -35,12 +38,70 @@ RENDERER_JS = """() => { const g = document.createElement('canvas').getContext('
     return String(e ? g.getParameter(e.UNMASKED_RENDERER_WEBGL) : g.getParameter(g.RENDERER)); }"""
 
 
-def launch(playwright: Any, profile_dir: str | Path, gl: Gl = "swiftshader") -> Any:
+#: A browser still open this long (s) after its launch is killed (`launch`).
+DEADLINE_S = 300.0
+
+
+def _chromium_descendants() -> list[int]:
+    """PIDs of the Chromium processes below this one (Linux `/proc`; none elsewhere)."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").glob("[0-9]*"):
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        children.setdefault(ppid, []).append(int(d.name))
+    out, todo = [], [os.getpid()]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            todo.append(c)
+            try:
+                if "chromium" in os.readlink(f"/proc/{c}/exe"):
+                    out.append(c)
+            except OSError:
+                continue
+    return out
+
+
+#: How many times `kill_chromium` has killed a browser in this process.
+kills = 0
+
+
+def kill_chromium() -> int:
+    """SIGKILL every Chromium process started below this one; how many were killed."""
+    global kills
+    n = 0
+    for pid in _chromium_descendants():
+        try:
+            os.kill(pid, signal.SIGKILL)
+            n += 1
+        except OSError:
+            continue
+    kills += n > 0
+    return n
+
+
+def launch(
+    playwright: Any, profile_dir: str | Path, gl: Gl = "swiftshader",
+    deadline_s: float | None = DEADLINE_S,
+) -> Any:  # fmt: skip
     """A headless Chromium context (a 1200x800 page) with its profile in `profile_dir`, its
-    WebGL drawn by `gl` (`GL_ARGS`)."""
+    WebGL drawn by `gl` (`GL_ARGS`).
+
+    A browser still open `deadline_s` after its launch is killed (`kill_chromium`), so that
+    whatever waits on it fails with Playwright's "target closed" error instead of waiting for
+    ever: a software-rendered Chromium has been seen to spin for 20 minutes, holding its test
+    past pytest-timeout's alarm (which cannot end a wait inside the browser's teardown). None:
+    no deadline."""
     if gl not in GL_ARGS:
         raise ValueError(f"gl must be one of {sorted(GL_ARGS)}, not {gl!r}")
-    return playwright.chromium.launch_persistent_context(
+    ctx = playwright.chromium.launch_persistent_context(
         str(profile_dir), executable_path=str(CHROMIUM), headless=True,
         args=CHROMIUM_ARGS + GL_ARGS[gl], viewport={"width": 1200, "height": 800},
     )  # fmt: skip
+    if deadline_s is not None:
+        timer = threading.Timer(deadline_s, kill_chromium)
+        timer.daemon = True
+        timer.start()
+        ctx.on("close", lambda *_: timer.cancel())
+    return ctx
