@@ -169,7 +169,7 @@ def run(
     rng = np.random.default_rng(seed)
     try:
         with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
-            ctx = launch(pw, profile, gl)
+            ctx = launch(pw, profile, gl, deadline_s=1800)  # a long run: 30 min
             page = ctx.new_page()
             page.goto(f"http://127.0.0.1:{port}")
             page.wait_for_selector("canvas", timeout=60_000)
