@@ -289,6 +289,48 @@ def test_ground_wire_posts_and_strays_are_removed_and_counted(tmp_path: Path) ->
     assert scan2.counts()["ground"] == scan2.counts()["wire"] == scan2.counts()["post"] == 0
 
 
+def _tube_points(a: np.ndarray, b: np.ndarray, r: float, step: float, rng: np.random.Generator
+                 ) -> np.ndarray:  # fmt: skip
+    """Points on a cylinder's surface from a to b (radius r, about `step` apart, 1 mm noise)."""
+    L = float(np.linalg.norm(b - a))
+    t = (b - a) / L
+    u = np.cross(t, [0.0, 0.0, 1.0] if abs(t[2]) < 0.9 else [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(t, u)
+    n = max(int(2 * np.pi * r * L / step**2), 20)
+    s, ang = rng.uniform(0, L, n), rng.uniform(0, 2 * np.pi, n)
+    P = a + s[:, None] * t + r * (np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v)
+    return P + rng.normal(0, 0.001, P.shape)
+
+
+def test_a_wire_through_the_wood_it_carries_is_found_and_the_wood_stays() -> None:
+    """`find_wires`: a 2.4 m wire whose cordon lies on it for 10 cm every 30 cm (the dense
+    generated vine's case, where the wire was kept) is found, and the cordon's points stay; a
+    straight horizontal cordon alone is no wire; a line tried that is no wire does not end the
+    search."""
+    from vinetwin.scan.clean import find_wires
+
+    rng = np.random.default_rng(3)
+    up = np.array([0.0, 0.0, 1.0])
+    wire = _tube_points(np.array([-1.2, 0, 0.8]), np.array([1.2, 0, 0.8]), 0.0015, 0.004, rng)
+    wood = [_tube_points(np.array([x, 0.0, 0.8]), np.array([x + 0.1, 0.0, 0.8]), 0.012, 0.004,
+                         rng) for x in np.arange(-1.0, 1.0, 0.3)]  # fmt: skip
+    wood_P = np.concatenate(wood)
+    # a thick straight limb, horizontal and 1.2 m long, elsewhere: no wire
+    limb = _tube_points(np.array([-0.6, 0.4, 1.2]), np.array([0.6, 0.4, 1.2]), 0.015, 0.004, rng)
+    P = np.concatenate([wire, wood_P, limb])
+    m = find_wires(P, up, 0.004, np.random.default_rng(0))
+    n_w, n_wood = len(wire), len(wood_P)
+    on_wire = m[:n_w]
+    free = np.ones(n_w, bool)
+    for x in np.arange(-1.0, 1.0, 0.3):  # the wire's points outside the wood
+        free &= ~((wire[:, 0] > x - 0.05) & (wire[:, 0] < x + 0.15))
+    assert on_wire[free].mean() > 0.9, on_wire[free].mean()
+    assert m[n_w : n_w + n_wood].mean() < 0.02  # the cordon's points stay
+    assert not m[n_w + n_wood :].any()  # the limb is no wire
+    assert not find_wires(np.concatenate([wood_P, limb]), up, 0.004, np.random.default_rng(0)).any()
+
+
 # ------------------------------------------------------------------------------ the skeleton
 def test_skeleton_and_candidates_match_the_truth_of_a_simulated_scan(
     scanned: Scanned, tmp_path: Path

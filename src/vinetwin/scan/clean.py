@@ -85,20 +85,24 @@ def find_ground(points: Array, spacing: float, rng: np.random.Generator) -> Grou
 
 
 def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generator) -> Mask:
-    """(N,) True for points of trellis wires: straight lines of points at least 1 m long within
-    10 degrees of horizontal, where nothing thicker than the wire surrounds them (where the
-    cordon lies on the wire, the cordon's points stay)."""
+    """(N,) True for points of trellis wires: straight lines of points within 10 degrees of
+    horizontal, thin (nothing thicker than the wire around them) along at least 1 m, half of
+    its 5 cm slices at least, where the wire may pass through wood for up to
+    `WIRE_THROUGH_WOOD` at a time (the trunk, a spur, the cordon lying on it: there the wood's
+    points stay). A line that is no wire (a straight cane) is passed over and the search goes
+    on."""
     from vinetwin.scan.skeletonize import voxel_thin
 
     mask = np.zeros(len(points), bool)
     tol = float(np.clip(2 * spacing, 0.004, 0.01))
     P, _ = voxel_thin(points, max(spacing, 0.005))
     P = P[_horizontal_lines(P, up)]  # a wire is a few hundred of 100k points: look among these
-    for _ in range(8):  # wires found at most
-        live = P[~_near_any(P, points[mask], tol)] if mask.any() else P
-        if len(live) < 50:
+    passed = np.zeros(len(P), bool)  # near lines tried that were no wire
+    for _ in range(8):  # lines tried at most
+        live = ~passed & (~_near_any(P, points[mask], tol) if mask.any() else True)
+        if live.sum() < 50:
             break
-        line = _best_line(live, up, tol, rng)
+        line = _best_line(P[live], up, tol, rng)
         if line is None:
             break
         c, t = line
@@ -108,25 +112,46 @@ def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generato
         inl = off <= tol
         if inl.sum() < 30:
             break
-        s0 = np.floor(along / 0.05).astype(np.int64)
+        s0 = np.floor(along / WIRE_SLICE).astype(np.int64)
         wide = off <= 0.03
         lo = s0[wide].min()
         n_in = np.bincount(s0[inl] - lo, minlength=s0[wide].max() - lo + 1)
         n_wide = np.bincount(s0[wide] - lo, minlength=len(n_in))
         thin_slice = (n_in > 0) & (n_wide <= 1.3 * n_in + 2)
-        # a wire runs on: 1 m of thin slices with at most one empty slice in any two
-        run = best = 0
-        for k in range(len(thin_slice)):
-            run = (
-                run + 1
-                if thin_slice[k] or (k + 1 < len(thin_slice) and thin_slice[k + 1] and run)
-                else 0
-            )
-            best = max(best, run)
-        if best * 0.05 < 1.0:
-            break
+        if _longest_run(thin_slice, round(WIRE_THROUGH_WOOD / WIRE_SLICE)) * WIRE_SLICE < 1.0:
+            dP = P - c
+            aP = dP @ t
+            passed |= np.linalg.norm(dP - aP[:, None] * t, axis=1) <= tol
+            continue
         mask |= inl & thin_slice[np.clip(s0 - lo, 0, len(thin_slice) - 1)] & wide
     return mask
+
+
+#: A wire is looked at in slices this long (m) along it.
+WIRE_SLICE = 0.05
+#: A wire may pass through wood (the trunk, a spur, the cordon lying on it) for this long (m)
+#: at a time and run on: on the dense generated vine's scan with a trellis, the cordon on the
+#: wire broke its thin slices every 25-80 cm for 10 cm, and the wire was kept (precision
+#: 90.6% against 99.9% without the trellis).
+WIRE_THROUGH_WOOD = 0.15
+
+
+def _longest_run(thin: Mask, gap: int) -> int:
+    """The longest run (in slices, first thin slice to last) whose thin slices are broken by
+    no more than `gap` slices that are not, and at least half of which are thin."""
+    best = 0
+    start = last = -1
+    n = 0
+    for k, x in enumerate(thin):
+        if not x:
+            continue
+        if last < 0 or k - last - 1 > gap:
+            start, n = k, 0
+        last, n = k, n + 1
+        span = last - start + 1
+        if 2 * n >= span:
+            best = max(best, span)
+    return best
 
 
 def _horizontal_lines(P: Array, up: Array, k: int = 12) -> Mask:
