@@ -10,10 +10,13 @@ export's chain), the time to propose, and:
   scanner at the realistic quality, imported with `import_scan`, proposals on it against
   proposals on the true twin (moved into the scan's vine frame): the share of the true cuts with
   one of ours within 1 cm, missing, extra; once with the same stated internode on both
-  (the skeleton's share of the error), once with the true twin's own nodes (the whole chain).
+  (the skeleton's share of the error), once with the true twin's own nodes (the whole chain);
+  and why each true cut missed (`miss_classes`, same internode). `--agreement-json FILE`
+  writes the agreement apart (the three-seed run: `benchmarks/results/propose_agreement.json`).
 
     .venv/bin/python benchmarks/propose.py [--plants sample dense ...] [--rules spur cane]
-        [--agreement [--agreement-seeds 3]] [--keep DIR] [--check-profile PROFILE] [--json benchmarks/results/propose.json]
+        [--agreement [--agreement-seeds 3] [--agreement-json F]] [--keep DIR] [--check-profile PROFILE]
+        [--json benchmarks/results/propose.json]
         [--picture docs/results/proposals_dense.png]
 
 `--keep DIR` leaves the proposed twins there (for `vinetwin validate DIR --profile field`).
@@ -181,6 +184,7 @@ def agreement(name: str, work: Path, seed: int = 0) -> dict[str, Any]:
     from scan_accuracy import truth_skeleton, write_ply
 
     from vinetwin.scan.config import ScanImportConfig
+    from vinetwin.scan.frame import transform_skeleton
     from vinetwin.scan.importer import import_scan
     from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
     from vinetwin.twin.skeleton import DEFAULT_INTERNODE, tube_mesh
@@ -220,6 +224,72 @@ def agreement(name: str, work: Path, seed: int = 0) -> dict[str, Any]:
         out[label] = {"true": len(p_true), "ours": len(p_ours), "matched": matched,
                       "share": round(matched / max(len(p_true), 1), 3),
                       "missing": len(p_true) - matched, "extra": len(p_ours) - len(used)}  # fmt: skip
+    sk_true = transform_skeleton(true_twin.load_skeleton(), T)
+    out["misses"] = miss_classes(
+        twin_s.load_skeleton(), sk_true, RuleConfig(internode=DEFAULT_INTERNODE)
+    )
+    return out
+
+
+#: Why a true cut has none of ours within 1 cm (`miss_classes`).
+MISS_CLASSES = {
+    "spur_split": "the true spur's canes fall in two or more of our spurs",
+    "spur_merged": "our spur holds its canes and another spur's",
+    "choice": "our spur is the true one, but another of its canes is kept",
+    "position": "the same cane and action, more than 1 cm away (its parting or buds)",
+    "no_cane": "no cane of ours follows the cut's cane",
+    "other": "our cane gets no cut",
+}
+
+
+def miss_classes(ours: Any, truth: Any, cfg: RuleConfig) -> dict[str, int]:
+    """For each true cut (the rule on `truth`) with none of ours (the rule on `ours`) within
+    1 cm: why (`MISS_CLASSES`), counted. Each true shoot is followed by our shoot whose last
+    10 cm lie nearest it (within 1 cm on average); the two skeletons in one frame."""
+    from scipy.spatial import cKDTree
+
+    from vinetwin.plan.rules import analyse, propose_cuts
+
+    s_t, _ = analyse(truth, cfg)
+    s_o, _ = analyse(ours, cfg)
+    p_t, p_o = propose_cuts(truth, cfg), propose_cuts(ours, cfg)
+    pts_o = np.array([p.point for p in p_o]).reshape(-1, 3)
+    trees = [cKDTree(s.points) for s in s_o]
+
+    def follower(s: Any) -> int | None:
+        tail = s.points[s.arc > s.arc[-1] - 0.10]
+        d = [float(np.mean(t.query(tail)[0])) for t in trees]
+        j = int(np.argmin(d)) if d else -1
+        return j if d and d[j] <= 0.01 else None
+
+    follow = {s.label: follower(s) for s in s_t}
+    members: dict[int, list[str]] = {}
+    for s in s_t:
+        members.setdefault(s.spur, []).append(s.label)
+    out = dict.fromkeys(MISS_CLASSES, 0)
+    for p in p_t:
+        if len(pts_o) and float(np.min(np.linalg.norm(pts_o - p.point, axis=1))) <= 0.01:
+            continue
+        st = next(s for s in s_t if s.label == p.label)
+        o = follow[p.label]
+        if o is None:
+            out["no_cane"] += 1
+            continue
+        mates = [follow[lab] for lab in members[st.spur]]
+        spurs = {s_o[m].spur for m in mates if m is not None}
+        strangers = [i for i, s in enumerate(s_o)
+                     if s.spur in spurs and i not in mates and s.side_of < 0]  # fmt: skip
+        mine = [q for q in p_o if q.label == s_o[o].label]
+        if len(spurs) > 1:
+            out["spur_split"] += 1
+        elif strangers:
+            out["spur_merged"] += 1
+        elif not mine:
+            out["other"] += 1
+        elif mine[0].action != p.action:
+            out["choice"] += 1
+        else:
+            out["position"] += 1
     return out
 
 
@@ -282,6 +352,7 @@ def main() -> None:
     ap.add_argument("--rules", nargs="*", default=["spur", "cane"])
     ap.add_argument("--agreement", action="store_true", help="also the scanned-twin agreement")
     ap.add_argument("--agreement-seeds", type=int, default=1, help="scans per plant (seeds 0..N-1)")
+    ap.add_argument("--agreement-json", type=Path, help="write the agreement here (apart)")
     ap.add_argument("--keep", type=Path, help="leave the proposed twins in this folder")
     ap.add_argument(
         "--check-profile",
@@ -318,21 +389,31 @@ def main() -> None:
             picture(work / "dense_spur.twin", "spur", a.picture)
         if a.agreement:
             print("\n| plant | seed | same internode: matched / true (missing, extra) | true "
-                  "nodes: matched / true (missing, extra) |\n|---|---|---|---|")  # fmt: skip
+                  "nodes: matched / true (missing, extra) | misses (same internode) |\n"
+                  "|---|---|---|---|---|")  # fmt: skip
             for name, seed in [(p, k) for p in a.plants if p != "apple_spindle"
                                for k in range(a.agreement_seeds)]:  # fmt: skip
                 g = agreement(name, work, seed)
                 agree.append(g)
                 s, t = g["same_internode"], g["true_nodes"]
+                m = ", ".join(f"{k} {v}" for k, v in g["misses"].items() if v)
                 print(f"| {name} | {seed} | {s['matched']}/{s['true']} = {s['share']:.0%} ({s['missing']}, "
                       f"{s['extra']}) | {t['matched']}/{t['true']} = {t['share']:.0%} "
-                      f"({t['missing']}, {t['extra']}) |", flush=True)  # fmt: skip
+                      f"({t['missing']}, {t['extra']}) | {m} |", flush=True)  # fmt: skip
+            misses = {k: sum(g["misses"][k] for g in agree) for k in MISS_CLASSES}
+            print("\nwhy the true cuts were missed (same internode, all runs):")
+            for k, v in misses.items():
+                print(f"- {k}: {v} ({MISS_CLASSES[k]})")
     finally:
         if not a.keep:
             shutil.rmtree(work, ignore_errors=True)
     if a.json:
-        a.json.write_text(json.dumps({"machine": machine(), "rows": rows, "agreement": agree},
+        a.json.write_text(json.dumps({"machine": machine(), "rows": rows}
+                                     | ({"agreement": agree} if agree and not a.agreement_json else {}),
                                      indent=1))  # fmt: skip
+    if a.agreement_json:
+        a.agreement_json.write_text(json.dumps({"machine": machine(), "agreement": agree,
+                                                "miss_classes": MISS_CLASSES}, indent=1))  # fmt: skip
 
 
 if __name__ == "__main__":
