@@ -90,7 +90,7 @@ def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generato
     its 5 cm slices at least, where the wire may pass through wood for up to
     `WIRE_THROUGH_WOOD` at a time (the trunk, a spur, the cordon lying on it: there the wood's
     points stay). A line that is no wire (a straight cane) is passed over and the search goes
-    on."""
+    on, `WIRE_MISSES` times at most."""
     from vinetwin.scan.skeletonize import voxel_thin
 
     mask = np.zeros(len(points), bool)
@@ -98,6 +98,7 @@ def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generato
     P, _ = voxel_thin(points, max(spacing, 0.005))
     P = P[_horizontal_lines(P, up)]  # a wire is a few hundred of 100k points: look among these
     passed = np.zeros(len(P), bool)  # near lines tried that were no wire
+    misses = 0
     for _ in range(8):  # lines tried at most
         live = ~passed & (~_near_any(P, points[mask], tol) if mask.any() else True)
         if live.sum() < 50:
@@ -122,11 +123,17 @@ def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generato
             dP = P - c
             aP = dP @ t
             passed |= np.linalg.norm(dP - aP[:, None] * t, axis=1) <= tol
+            misses += 1
+            if misses > WIRE_MISSES:
+                break
             continue
         mask |= inl & thin_slice[np.clip(s0 - lo, 0, len(thin_slice) - 1)] & wide
     return mask
 
 
+#: Lines that are no wire passed over before the search ends (each costs a RANSAC: on the
+#: 500k-point dense vine without a trellis, trying up to 8 made the stage 1.5 s slower).
+WIRE_MISSES = 2
 #: A wire is looked at in slices this long (m) along it.
 WIRE_SLICE = 0.05
 #: A wire may pass through wood (the trunk, a spur, the cordon lying on it) for this long (m)
