@@ -224,9 +224,10 @@ def agreement(name: str, work: Path, seed: int = 0) -> dict[str, Any]:
         out[label] = {"true": len(p_true), "ours": len(p_ours), "matched": matched,
                       "share": round(matched / max(len(p_true), 1), 3),
                       "missing": len(p_true) - matched, "extra": len(p_ours) - len(used)}  # fmt: skip
-    sk_true = transform_skeleton(true_twin.load_skeleton(), T)
+    sk_t, sk_s = true_twin.load_skeleton(), twin_s.load_skeleton()
+    assert sk_t is not None and sk_s is not None  # both twins were made with one
     out["misses"] = miss_classes(
-        twin_s.load_skeleton(), sk_true, RuleConfig(internode=DEFAULT_INTERNODE)
+        sk_s, transform_skeleton(sk_t, T), RuleConfig(internode=DEFAULT_INTERNODE)
     )
     return out
 
