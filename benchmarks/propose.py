@@ -12,10 +12,15 @@ export's chain), the time to propose, and:
   one of ours within 1 cm, missing, extra; once with the same stated internode on both
   (the skeleton's share of the error), once with the true twin's own nodes (the whole chain);
   and why each true cut missed (`miss_classes`, same internode). `--agreement-json FILE`
-  writes the agreement apart (the three-seed run: `benchmarks/results/propose_agreement.json`).
+  writes the agreement apart (the three-seed run: `benchmarks/results/propose_agreement.json`);
+- **the rule's own stability** (`--stability`): the spur rule on each vine's true skeleton against
+  the same skeleton resampled and moved by a smooth axis error of 0-2 mm (`jitter`,
+  `STABILITY_SIGMAS`): what the scanned agreement could reach with every cane routed right.
+  `--stability-json FILE` writes it (`benchmarks/results/propose_stability.json`).
 
     .venv/bin/python benchmarks/propose.py [--plants sample dense ...] [--rules spur cane]
-        [--agreement [--agreement-seeds 3] [--agreement-json F]] [--keep DIR] [--check-profile PROFILE]
+        [--agreement [--agreement-seeds 3] [--agreement-json F]] [--stability [--stability-json F]]
+        [--keep DIR] [--check-profile PROFILE]
         [--json benchmarks/results/propose.json]
         [--picture docs/results/proposals_dense.png]
 
@@ -211,16 +216,8 @@ def agreement(name: str, work: Path, seed: int = 0) -> dict[str, Any]:
         p_ours = np.array([twin_s.cut_point(r["id"]).point for r in ours.rows]).reshape(-1, 3)
         p_true = np.array([true_twin.cut_point(r["id"]).point for r in theirs.rows]).reshape(-1, 3)
         p_true = p_true @ T[:3, :3].T + T[:3, 3]
-        matched, used = 0, set()
-        for p in p_true:  # one to one, nearest first
-            d = np.linalg.norm(p_ours - p, axis=1) if len(p_ours) else np.zeros(0)
-            for j in np.argsort(d):
-                if d[j] > 0.01:
-                    break
-                if j not in used:
-                    used.add(int(j))
-                    matched += 1
-                    break
+        used = _matched(p_true, p_ours)
+        matched = len(used)
         out[label] = {"true": len(p_true), "ours": len(p_ours), "matched": matched,
                       "share": round(matched / max(len(p_true), 1), 3),
                       "missing": len(p_true) - matched, "extra": len(p_ours) - len(used)}  # fmt: skip
@@ -230,6 +227,85 @@ def agreement(name: str, work: Path, seed: int = 0) -> dict[str, Any]:
         sk_s, transform_skeleton(sk_t, T), RuleConfig(internode=DEFAULT_INTERNODE)
     )
     return out
+
+
+def _matched(p_true: np.ndarray, p_ours: np.ndarray, tol: float = 0.01) -> set[int]:
+    """Which of `p_ours` are matched one to one, nearest first, to a point of `p_true` within
+    `tol` (their indices)."""
+    used: set[int] = set()
+    for p in p_true:
+        d = np.linalg.norm(p_ours - p, axis=1) if len(p_ours) else np.zeros(0)
+        for j in np.argsort(d):
+            if d[j] > tol:
+                break
+            if int(j) not in used:
+                used.add(int(j))
+                break
+    return used
+
+
+def jitter(
+    sk: Any, sigma: float, rng: np.random.Generator, step: float = 0.002, corr: float = 0.02
+) -> Any:
+    """A copy of the skeleton with each branch resampled every `step` and its axis moved by a
+    smooth error: independent normal offsets (`sigma` per coordinate) every `corr` along it,
+    interpolated between (a scan's skeleton errs by a slowly varying offset, not point by
+    point). Nodes are dropped (a scan knows none)."""
+    import copy
+
+    from vinetwin.twin.skeleton import arc_length, resample
+
+    out = copy.deepcopy(sk)
+    for b in out.branches:
+        P, R = resample(b.points, b.radii, step)
+        s = arc_length(P)
+        knots = np.arange(0.0, s[-1] + corr, corr)
+        E = rng.normal(0.0, sigma, (len(knots), 3))
+        b.points = P + np.column_stack([np.interp(s, knots, E[:, k]) for k in range(3)])
+        b.radii, b.nodes = R, np.zeros(0)
+    return out
+
+
+#: Axis errors (m, `jitter`'s sigma) of the rule's own stability (`stability`): 0 resamples
+#: only; 1-2 mm is how far the scanned skeletons' axes are off (median 1.0-1.6 mm on the four
+#: vines' realistic scans).
+STABILITY_SIGMAS = (0.0, 0.0005, 0.001, 0.002)
+
+
+def stability(name: str, reps: int = 3) -> dict[str, Any]:
+    """The rule's own stability: the spur rule on the true skeleton against the same rule on
+    that skeleton moved by `jitter` (each sigma of `STABILITY_SIGMAS`, `reps` draws), the same
+    internode on both: the share of the true cuts with one within 1 cm, and why the others
+    missed (`miss_classes`). Every cane is routed right here: what is lost is the rule's
+    discrete decisions (which spur, which cane is kept, cane or side shoot) flipping under a
+    small error, a ceiling for the scanned agreement."""
+    from scan_accuracy import truth_skeleton
+    from scipy.spatial import cKDTree
+
+    from vinetwin.plan.rules import propose_cuts
+    from vinetwin.twin.skeleton import DEFAULT_INTERNODE, resample
+
+    truth = _sample3() if name == "sample" else truth_skeleton(name)
+    cfg = RuleConfig(internode=DEFAULT_INTERNODE)
+    p_true = np.array([p.point for p in propose_cuts(truth, cfg)]).reshape(-1, 3)
+    axis = cKDTree(np.vstack([resample(b.points, b.radii, 0.002)[0] for b in truth.branches]))
+    rows = []
+    for sigma in STABILITY_SIGMAS:
+        matched, offsets = 0, []
+        misses = dict.fromkeys(MISS_CLASSES, 0)
+        for rep in range(reps):
+            sk = jitter(truth, sigma, np.random.default_rng(rep))
+            p_ours = np.array([p.point for p in propose_cuts(sk, cfg)]).reshape(-1, 3)
+            matched += len(_matched(p_true, p_ours))
+            moved = np.vstack([b.points for b in sk.branches])
+            offsets.append(float(np.median(axis.query(moved)[0])))
+            for k, v in miss_classes(sk, truth, cfg).items():
+                misses[k] += v
+        n = reps * len(p_true)
+        rows.append({"sigma_mm": sigma * 1000, "median_offset_mm": round(1000 * float(np.mean(offsets)), 2),
+                     "matched": matched, "true": n, "share": round(matched / max(n, 1), 3),
+                     "misses": misses})  # fmt: skip
+    return {"plant": name, "reps": reps, "rows": rows}
 
 
 #: Why a true cut has none of ours within 1 cm (`miss_classes`).
@@ -354,6 +430,12 @@ def main() -> None:
     ap.add_argument("--agreement", action="store_true", help="also the scanned-twin agreement")
     ap.add_argument("--agreement-seeds", type=int, default=1, help="scans per plant (seeds 0..N-1)")
     ap.add_argument("--agreement-json", type=Path, help="write the agreement here (apart)")
+    ap.add_argument(
+        "--stability",
+        action="store_true",
+        help="also the rule's own stability on each vine's true skeleton (`stability`)",
+    )
+    ap.add_argument("--stability-json", type=Path, help="write the stability here")
     ap.add_argument("--keep", type=Path, help="leave the proposed twins in this folder")
     ap.add_argument(
         "--check-profile",
@@ -365,14 +447,15 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--picture", type=Path, help="draw the dense vine's spur proposals here")
     a = ap.parse_args()
-    rows, agree = [], []
+    rows, agree, stab = [], [], []
     work = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="propose-"))
     work.mkdir(parents=True, exist_ok=True)
     try:
-        print("| plant | rule | cuts (shorten/remove) | posed | no pose | s | median clearance mm "
-              "| collisions (min mm) | ref points median (min) | default poses colliding / bad "
-              "| bad fixed |")  # fmt: skip
-        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        if a.rules:
+            print("| plant | rule | cuts (shorten/remove) | posed | no pose | s | median clearance mm "
+                  "| collisions (min mm) | ref points median (min) | default poses colliding / bad "
+                  "| bad fixed |")  # fmt: skip
+            print("|---|---|---|---|---|---|---|---|---|---|---|")
         for name in a.plants:
             for rule in a.rules:
                 r = run_plant(name, rule, work, a.check_profile)
@@ -405,6 +488,22 @@ def main() -> None:
             print("\nwhy the true cuts were missed (same internode, all runs):")
             for k, v in misses.items():
                 print(f"- {k}: {v} ({MISS_CLASSES[k]})")
+        if a.stability:
+            print("\n| plant | " + " | ".join(f"axis error sigma {s * 1000:g} mm" for s in STABILITY_SIGMAS)
+                  + " |\n|---|" + "---|" * len(STABILITY_SIGMAS))  # fmt: skip
+            for name in [p for p in a.plants if p != "apple_spindle"]:
+                st = stability(name)
+                stab.append(st)
+                print(f"| {name} | " + " | ".join(
+                    f"{r['matched']}/{r['true']} = {r['share']:.0%} (off {r['median_offset_mm']} mm)"
+                    for r in st["rows"]) + " |", flush=True)  # fmt: skip
+            print("\nall vines, and why the true cuts were missed:")
+            for i, sigma in enumerate(STABILITY_SIGMAS):
+                m = {k: sum(st["rows"][i]["misses"][k] for st in stab) for k in MISS_CLASSES}
+                hit = sum(st["rows"][i]["matched"] for st in stab)
+                n = sum(st["rows"][i]["true"] for st in stab)
+                print(f"- sigma {sigma * 1000:g} mm: {hit}/{n} = {hit / max(n, 1):.1%}; missed: "
+                      + (", ".join(f"{k} {v}" for k, v in m.items() if v) or "none"))  # fmt: skip
     finally:
         if not a.keep:
             shutil.rmtree(work, ignore_errors=True)
@@ -412,6 +511,10 @@ def main() -> None:
         a.json.write_text(json.dumps({"machine": machine(), "rows": rows}
                                      | ({"agreement": agree} if agree and not a.agreement_json else {}),
                                      indent=1))  # fmt: skip
+    if a.stability_json:
+        a.stability_json.write_text(json.dumps({"machine": machine(), "sigmas_m": STABILITY_SIGMAS,
+                                                "stability": stab, "miss_classes": MISS_CLASSES},
+                                               indent=1))  # fmt: skip
     if a.agreement_json:
         a.agreement_json.write_text(json.dumps({"machine": machine(), "agreement": agree,
                                                 "miss_classes": MISS_CLASSES}, indent=1))  # fmt: skip

@@ -209,12 +209,21 @@ def test_sim_benchmark_quick(tmp_path: Path) -> None:
 def test_propose_benchmark_quick(tmp_path: Path) -> None:
     """`benchmarks/propose.py` on the sample with the spur rule: every cut has a pose, none
     collides by the independent check, and references were rendered."""
-    out = tmp_path / "propose.json"
-    _, data = _quick("propose.py", out, "--plants", "sample", "--rules", "spur")
+    out, stab = tmp_path / "propose.json", tmp_path / "stability.json"
+    _, data = _quick("propose.py", out, "--plants", "sample", "--rules", "spur", "--stability",
+                     "--stability-json", str(stab))  # fmt: skip
     (row,) = data["rows"]
     assert row["proposed"] >= 8 and row["with_pose"] == row["proposed"]
     assert row["collisions"] == 0 and row["min_body_distance_mm"] > 0
     assert row["median_reference_points"] > 100
+    # the rule's own stability: resampling the sample's skeleton moves none of its cuts, and
+    # the jitter moves its axis by about the sigma asked (median of a 3D offset: 1.1 sigma)
+    (st,) = json.loads(stab.read_text())["stability"]
+    rows = {r["sigma_mm"]: r for r in st["rows"]}
+    assert rows[0.0]["share"] == 1.0 and rows[0.0]["median_offset_mm"] == 0.0
+    for sigma in (0.5, 1.0, 2.0):
+        assert 0.8 * sigma <= rows[sigma]["median_offset_mm"] <= 1.4 * sigma
+        assert rows[sigma]["share"] >= 0.9  # the sample's canes are far apart: few flips
 
 
 def test_prune_benchmark_quick(tmp_path: Path) -> None:
