@@ -41,20 +41,28 @@ PLANTS = {
     "dense": ("vine", None),
     "gdc_can1": ("vine", DATA / "vines/hydroshoot/gdc_can1_grapevine/digit.input"),
     "vsp_ww": ("vine", DATA / "vines/hydroshoot/vsp_ww_grapevine/digit.input"),
+    "virtual_vsp": ("vine", DATA / "vines/hydroshoot/virtual_vsp/digit.input"),  # held out
     "apple_spindle": ("tree", DATA / "trees/tree-models-library/Apple_1_TallSpindle.txt"),
     "apple_ytrellis": ("tree", DATA / "trees/tree-models-library/Apple_YTrellisL.txt"),
     "nectarine": ("tree", DATA / "trees/tree-models-library/Nectarine_30_6_14_1.txt"),
 }
 
 
+HELD_OUT = ["virtual_vsp", *(f"sample@{s}" for s in range(1, 10)), *(f"dense@{s}" for s in range(6, 14))]
+"""Plants no setting of the import was chosen on: hydroshoot's third vine and generated vines of
+other seeds (`sample@N`: `generate_vine(N)`; `dense@N`: the dense parameters, seed N); the tuned
+ones are the sample (seed 0), the dense vine (seed 5) and the other six plants of `PLANTS`."""
+
+
 def truth_skeleton(name: str) -> Skeleton:
     from vinetwin.twin.generator import DENSE, VineParams, generate_vine
     from vinetwin.twin.importers import load_skeleton
 
-    if name == "sample":
-        return generate_vine(0)
-    if name == "dense":
-        return generate_vine(5, VineParams(**DENSE))  # type: ignore[arg-type]
+    base, _, seed = name.partition("@")  # "sample@3", "dense@7": a held-out generated vine
+    if base == "sample":
+        return generate_vine(int(seed or 0))
+    if base == "dense":
+        return generate_vine(int(seed or 5), VineParams(**DENSE))  # type: ignore[arg-type]
     path = PLANTS[name][1]
     assert path is not None
     return load_skeleton(path)
@@ -70,7 +78,7 @@ def write_ply(path: Path, points: np.ndarray) -> None:
 
 
 def run_one(name: str, quality: str, seed: int, work: Path, trellis: bool) -> dict[str, Any]:
-    plant, _ = PLANTS[name]
+    plant, _ = PLANTS[name.partition("@")[0]]
     truth = truth_skeleton(name)
     V, F = tube_mesh(truth, edge=0.003, caps="round")
     if quality == "d405":  # an RGB-D rig's fused frames instead of a LiDAR-like scan
@@ -130,7 +138,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--plants", nargs="*", default=list(PLANTS))
+    ap.add_argument("--plants", nargs="*", default=[p for p in PLANTS if p not in HELD_OUT],
+                    help="names of PLANTS, or sample@N / dense@N: a generated vine of seed N")  # fmt: skip
+    ap.add_argument("--held-out", action="store_true",
+                    help="the plants of HELD_OUT (no setting was chosen on them) instead")  # fmt: skip
     ap.add_argument(
         "--qualities",
         nargs="*",
@@ -146,6 +157,8 @@ def main() -> None:
     if a.spread:
         print_spread(json.loads(a.spread.read_text())["rows"])
         return
+    if a.held_out:
+        a.plants = HELD_OUT
     rows = []
     print(
         "| plant | quality | points | s | up err ° | complete | precise | radius err mm | tips found/true (extra) | canes lost/seen | cuts found/true | Chamfer mm | F@2mm |"
