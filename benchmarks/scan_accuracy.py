@@ -48,10 +48,18 @@ PLANTS = {
 }
 
 
-HELD_OUT = ["virtual_vsp", *(f"sample@{s}" for s in range(1, 10)), *(f"dense@{s}" for s in range(6, 14))]
-"""Plants no setting of the import was chosen on: hydroshoot's third vine and generated vines of
-other seeds (`sample@N`: `generate_vine(N)`; `dense@N`: the dense parameters, seed N); the tuned
-ones are the sample (seed 0), the dense vine (seed 5) and the other six plants of `PLANTS`."""
+DEVELOPMENT = [*(f"sample@{s}" for s in range(1, 10)), *(f"dense@{s}" for s in range(6, 14))]
+"""Generated vines of other seeds (`sample@N`: `generate_vine(N)`; `dense@N`: the dense
+parameters, seed N) on which the cordon rules of `scan.frame` and `scan.candidates` were last
+changed (their cut candidates were 70% there before)."""
+
+HELD_OUT = [
+    "virtual_vsp",
+    *(f"sample@{s}" for s in range(10, 18)),
+    *(f"dense@{s}" for s in range(14, 22)),
+]
+"""Plants no setting of the import was chosen on: hydroshoot's third vine and generated vines
+of seeds neither `PLANTS` nor `DEVELOPMENT` holds."""
 
 
 def truth_skeleton(name: str) -> Skeleton:
@@ -138,10 +146,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--plants", nargs="*", default=[p for p in PLANTS if p not in HELD_OUT],
+    ap.add_argument("--plants", nargs="*", default=[p for p in PLANTS if p != "virtual_vsp"],
                     help="names of PLANTS, or sample@N / dense@N: a generated vine of seed N")  # fmt: skip
-    ap.add_argument("--held-out", action="store_true",
-                    help="the plants of HELD_OUT (no setting was chosen on them) instead")  # fmt: skip
+    ap.add_argument("--set", choices=("held-out", "development"),
+                    help="the plants of HELD_OUT (no setting was chosen on them) or of DEVELOPMENT "
+                    "instead")  # fmt: skip
     ap.add_argument(
         "--qualities",
         nargs="*",
@@ -157,8 +166,8 @@ def main() -> None:
     if a.spread:
         print_spread(json.loads(a.spread.read_text())["rows"])
         return
-    if a.held_out:
-        a.plants = HELD_OUT
+    if a.set:
+        a.plants = HELD_OUT if a.set == "held-out" else DEVELOPMENT
     rows = []
     print(
         "| plant | quality | points | s | up err ° | complete | precise | radius err mm | tips found/true (extra) | canes lost/seen | cuts found/true | Chamfer mm | F@2mm |"

@@ -247,3 +247,14 @@ def test_prune_row_benchmark_quick(tmp_path: Path) -> None:
                      "--no-ray", "--keep", str(tmp_path / "work"))  # fmt: skip
     assert data["agree"] is True and len(data["per_vine"]) == 2
     assert all(len(v) == 2 and all(v) for v in data["same"].values())
+
+
+def test_scan_accuracy_benchmark_on_a_generated_vine_of_another_seed(tmp_path: Path) -> None:
+    """`sample@N` scans `generate_vine(N)` (the held-out and development sets are such vines):
+    seed 2's vine has 8 candidates and 10 canes, and its scan's skeleton is found."""
+    out = tmp_path / "scan.json"
+    proc, data = _quick("scan_accuracy.py", out, "--plants", "sample@2", "--qualities", "realistic")
+    (row,) = data["rows"]
+    assert row["plant"] == "sample@2" and "| sample@2 |" in proc.stdout
+    assert row["candidates_true"] == 8 and row["canes_seen"] == 10, row
+    assert row["completeness"] >= 0.98 and row["precision"] >= 0.98, row

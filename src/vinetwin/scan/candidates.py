@@ -31,6 +31,7 @@ from vinetwin.scan.config import PlantKind
 from vinetwin.twin.importers import CANDIDATE_OFFSET
 from vinetwin.twin.skeleton import (
     FIRST_NODE,
+    Branch,
     BranchKind,
     CutCandidate,
     Skeleton,
@@ -80,9 +81,11 @@ def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[Cut
 
 
 CORDON_RADIUS = 0.5
-"""A cordon's median radius is at least this share of the trunk's (measured on the generator's
-and hydroshoot's vines: cordons 0.61-0.82 of the trunk, canes and shoots at most 0.41), so a
-long level shoot or cane on a cordon is not taken for permanent wood."""
+"""A cordon's median radius is at least this share of the trunk's, so a long level shoot or cane
+on a cordon is not taken for permanent wood (the hydroshoot vines' cordons are 0.61-0.82 of
+their trunk, their canes and shoots at most 0.41; over 60 generated vines of each kind cordons
+run 0.43-0.9 and canes up to 0.52, so a bilateral vine's thinner cordon is judged against its
+other one: `SISTER`)."""
 
 
 ARM_MIN = 0.05
@@ -107,6 +110,66 @@ vine's scans: its right cordon (17 mm in the scan) curls on for 16 cm at 10-12.5
 the trunk's 26 mm, while the shoots hanging there are 4-5 mm."""
 
 
+SISTER = 0.6
+"""A bilateral vine's second cordon is at least this share of the first one's median radius
+(the generator draws each 18-30 mm thick), when the trunk's rule (`CORDON_RADIUS`) misses it: on
+generated vines cordons run down to 0.43 of the trunk's radius while canes reach 0.52, yet
+within one vine every cordon is thicker than every cane."""
+
+
+def _level(b: Branch, up: Array) -> bool:
+    """At least 15 cm long and level: its principal axis within 30 degrees of horizontal."""
+    if b.length < 0.15:
+        return False
+    Q = b.points - b.points.mean(0)
+    return abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up)) < 0.5
+
+
+def heading(c: Branch, last: float = 0.1) -> Array:
+    """The unit direction of a branch's last `last` metres."""
+    s = arc_length(c.points)
+    e = c.points[-1] - c.points[min(int(np.searchsorted(s, s[-1] - last)), len(s) - 2)]
+    return e / max(float(np.linalg.norm(e)), 1e-12)
+
+
+def carries_on(b: Branch, c: Branch, up: Array, r_c: float) -> bool:
+    """A piece of `ARM_MIN` or more carrying cordon `c` on from its end: starting within
+    `CONTINUE_WITHIN` of it, level, as thick as `r_c`, heading within 35 degrees of the way
+    `c`'s last 10 cm head (a cordon's last centimetres past the fork of its last spur)."""
+    if b.length < ARM_MIN or float(np.median(b.radii)) < r_c:
+        return False
+    if float(np.linalg.norm(b.points[0] - c.points[-1])) > CONTINUE_WITHIN:
+        return False
+    d = b.points[-1] - b.points[0]
+    if abs(float(d @ up)) > ARM_RISE * b.length:
+        return False
+    return float(d @ heading(c)) >= 0.82 * float(np.linalg.norm(d))
+
+
+def sister_cordons(sk: Skeleton, up: Array, r_ref: float) -> set[int]:
+    """Branches leaving the trunk's head (within `HEAD` of its top), level and 15 cm or longer,
+    thinner than `r_ref` but at least `SISTER` of a cordon's median radius (a branch from the
+    head as thick as `r_ref`) and heading the other way along the row from it: a bilateral
+    vine's thinner cordon."""
+    roots = [i for i, b in enumerate(sk.branches) if b.parent < 0]
+    if not roots:
+        return set()
+    head = sk.branches[roots[0]].points[-1]
+    kids = [i for i, b in enumerate(sk.branches)
+            if b.parent in roots and float(np.linalg.norm(b.points[0] - head)) <= HEAD
+            and _level(b, up)]  # fmt: skip
+    med = {i: float(np.median(sk.branches[i].radii)) for i in kids}
+
+    def way(i: int) -> Array:
+        d = sk.branches[i].points[-1] - sk.branches[i].points[0]
+        d = d - (d @ up) * up
+        return d / max(float(np.linalg.norm(d)), 1e-9)
+
+    firsts = [i for i in kids if med[i] >= r_ref]
+    return {i for i in kids if med[i] < r_ref
+            and any(med[i] >= SISTER * med[f] and float(way(i) @ way(f)) < -0.5 for f in firsts)}  # fmt: skip
+
+
 def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
     """Names each branch's kind from its shape (in place): for a vine the root is the trunk,
     long near-horizontal thick branches from the trunk are cordons (and so is a head-trained
@@ -122,6 +185,7 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
         order.extend(children[i])
     r_trunk = float(np.median(sk.branches[order[0]].radii)) if order else 0.0
     head = sk.branches[order[0]].points[-1] if order else np.zeros(3)
+    sisters = sister_cordons(sk, up, CORDON_RADIUS * r_trunk) if plant == "vine" else set()
     for i in order:
         b = sk.branches[i]
         kind: BranchKind
@@ -133,7 +197,7 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
             Q = b.points - b.points.mean(0)
             flat = abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up))  # |sin| of its slope
             parent_kind = sk.branches[b.parent].kind
-            thick = float(np.median(b.radii)) >= CORDON_RADIUS * r_trunk
+            thick = float(np.median(b.radii)) >= CORDON_RADIUS * r_trunk or i in sisters
             rise = abs(float((b.points[-1] - b.points[0]) @ up)) / max(b.length, 1e-9)
             arm = (b.length >= ARM_MIN and bool(children[i]) and rise < ARM_RISE
                    and float(np.linalg.norm(b.points[0] - head)) <= HEAD)  # fmt: skip
@@ -141,7 +205,10 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
             pb = sk.branches[b.parent]  # a cordon's continuation from its end, tapering
             tapers = (parent_kind == "cordon" and float(np.linalg.norm(b.points[0] - pb.points[-1])) <= CONTINUE_WITHIN
                       and float(np.median(b.radii)) >= CONTINUE_RADIUS * float(np.median(pb.radii)))  # fmt: skip
-            if ((cordon or arm) and thick) or (cordon and tapers):  # an arm: wherever hung
+            r_on = min(CORDON_RADIUS * r_trunk, CONTINUE_RADIUS * float(np.median(pb.radii)))
+            onward = parent_kind == "cordon" and carries_on(b, pb, up, r_on)
+            # an arm: wherever hung
+            if ((cordon or arm) and thick) or (cordon and tapers) or onward:
                 kind = "cordon"
             elif children[i] and b.length < 0.12:
                 kind = "spur"

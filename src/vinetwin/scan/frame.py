@@ -16,6 +16,9 @@ from vinetwin.scan.candidates import (
     CONTINUE_WITHIN,
     CORDON_RADIUS,
     HEAD,
+    carries_on,
+    heading,
+    sister_cordons,
 )
 from vinetwin.twin.skeleton import Branch, Skeleton, arc_length
 
@@ -151,14 +154,7 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
             continue
         P = b.points
         s = arc_length(P)
-        k_split = None
-        for k in range(1, len(P) - 1):
-            t = P[min(k + 3, len(P) - 1)] - P[max(k - 3, 0)]
-            t /= max(np.linalg.norm(t), 1e-9)
-            if abs(t @ up) > 0.64:
-                if s[k] >= 0.15 and s[-1] - s[k] >= 0.05:
-                    k_split = k
-                break
+        k_split = _turn_at(P, s, up, ARM_MIN)
         k_thin = _thin_from(s, b.radii, r_ref)
         if k_thin is not None and (k_split is None or k_thin < k_split):
             k_split = k_thin
@@ -171,6 +167,18 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
             continue
         _split_at(sk, i, k_split)
     _continue_cordons(sk, up, roots, r_ref)
+
+
+def _turn_at(P: Array, s: Array, up: Array, before: float, way: Array | None = None) -> int | None:
+    """The index where a branch first turns up or down by more than 40 degrees (its direction
+    over 3 points either side), or more than 40 degrees away from `way` when given, when that
+    is at least `before` (m) from its start and 5 cm before its end; else None."""
+    for k in range(1, len(P) - 1):
+        t = P[min(k + 3, len(P) - 1)] - P[max(k - 3, 0)]
+        t /= max(np.linalg.norm(t), 1e-9)
+        if abs(t @ up) > ARM_RISE or (way is not None and float(t @ way) < 0.766):
+            return k if s[k] >= before and s[-1] - s[k] >= 0.05 else None
+    return None
 
 
 def _window_median(s: Array, r: Array, window: float) -> Array:
@@ -237,10 +245,14 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
     vine: its right cordon's last 30 cm). A branch starting within `CONTINUE_WITHIN` of a cordon's end whose
     thick part is a cordon's shape continues it: it hangs from the cordon, split where it
     thins for good (a cordon tapers: thick by `candidates.CONTINUE_RADIUS` of the cordon's own
-    radius where that is under `r_ref`). Repeated from each new piece; in place, parents
+    radius where that is under `r_ref`) or where it turns up or down (the cordon's last
+    centimetres and the cane of its last spur make one chain: measured on generated vines of
+    seeds 6-13), and a level piece of `ARM_MIN` or more carrying the cordon on in its own
+    direction (`candidates.carries_on`) is one too. Repeated from each new piece; in place, parents
     first."""
     queue = [i for i, b in enumerate(sk.branches)
              if b.parent in roots and _level_and_thick(b, up, r_ref)]  # fmt: skip
+    queue += sorted(sister_cordons(sk, up, r_ref))
     done = set(queue) | roots
     while queue:
         c = queue.pop()
@@ -250,10 +262,14 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
             b = sk.branches[j]
             if j in done or float(np.linalg.norm(b.points[0] - end)) > CONTINUE_WITHIN:
                 continue
-            k = _thin_from(arc_length(b.points), b.radii, r_c)
-            if k is not None:
-                _split_at(sk, j, k)
-            if not _level_and_thick(sk.branches[j], up, r_c):
+            s = arc_length(b.points)
+            way = heading(sk.branches[c])
+            ks = [k for k in (_thin_from(s, b.radii, r_c), _turn_at(b.points, s, up, ARM_MIN, way))
+                  if k is not None]  # fmt: skip
+            if ks:
+                _split_at(sk, j, min(ks))
+            b = sk.branches[j]
+            if not (_level_and_thick(b, up, r_c) or carries_on(b, sk.branches[c], up, r_c)):
                 continue
             sk.branches[j].parent = c
             done.add(j)

@@ -1,0 +1,89 @@
+"""Permanent wood on a scan's skeleton: the cordon rules of `scan.frame.split_cordons` and
+`scan.candidates.label_kinds` on the shapes generated vines of seeds 6-13 showed (their cut
+candidates were 64.5% found before these rules, `benchmarks/scan_accuracy.py --set
+development`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vinetwin.scan.candidates import CORDON_RADIUS, SISTER, cut_candidates, label_kinds
+from vinetwin.scan.config import FIRST_NODE
+from vinetwin.scan.frame import split_cordons
+from vinetwin.twin.skeleton import Branch, Skeleton
+
+LINE = np.linspace(0, 1, 60)[:, None]
+Z = np.array([0.0, 0.0, 1.0])
+
+
+def seg(a: list[float], b: list[float], r: float, kind: str = "cane", parent: int = -1) -> Branch:
+    A, B = np.asarray(a), np.asarray(b)
+    return Branch(A + LINE * (B - A), np.full(60, r), kind, parent)  # type: ignore[arg-type]
+
+
+def kinds_of(sk: Skeleton) -> list[str]:
+    split_cordons(sk, Z)
+    label_kinds(sk, Z, "vine")
+    return [b.kind for b in sk.branches]
+
+
+def test_a_bilateral_vines_thinner_cordon_is_a_cordon() -> None:
+    """Trunk 18 mm, a 40 cm cordon of 10 mm one way and a 35 cm one of 8.3 mm the other way
+    (0.46 of the trunk: under `CORDON_RADIUS`, over `SISTER` of the first; generated vine seed 7):
+    both are cordons and a cane on the thinner one is cut counted from its surface. A level
+    4 mm cane leaving the head the same way is not one, nor is the thinner branch without a
+    thick cordon the other way."""
+    trunk = seg([0, 0, 0], [0, 0, 0.7], 0.018, "trunk")
+    right = seg([0, 0, 0.7], [0.4, 0, 0.7], 0.010, parent=0)
+    left = seg([0, 0, 0.7], [-0.35, 0, 0.7], 0.0083, parent=0)
+    cane = seg([-0.2, 0, 0.7], [-0.2, 0, 1.2], 0.004, parent=2)
+    thin = seg([0, 0, 0.7], [-0.3, 0.05, 0.71], 0.004, parent=0)
+    assert 0.0083 < CORDON_RADIUS * 0.018 and 0.0083 >= SISTER * 0.010
+    assert kinds_of(Skeleton([trunk, right, left, cane, thin])) == [
+        "trunk", "cordon", "cordon", "cane", "cane"]  # fmt: skip
+    sk = Skeleton([trunk, right, left, cane])
+    kinds_of(sk)
+    cut = next(c for c in cut_candidates(sk, "vine", 0.07) if c.branch == 3)
+    assert abs(cut.point[2] - (0.7 + 0.0083 + FIRST_NODE + 1.3 * 0.07)) < 2e-3, cut.point
+    lone = Skeleton([trunk, seg([0, 0, 0.7], [-0.35, 0, 0.7], 0.0083, parent=0), cane])
+    assert kinds_of(lone) == ["trunk", "cane", "cane"]
+
+
+@pytest.mark.parametrize("turn", ["up", "sideways"])
+def test_a_cordons_end_on_the_chain_of_its_last_cane_is_split_where_it_turns(turn: str) -> None:
+    """A 35 cm cordon (10 mm; trunk 15 mm) whose last 12 cm (8 mm) and the cane of its last spur
+    make one chain of the skeleton, the cane turning up (or sideways, level) there (generated
+    vines of seeds 9, 12, 13): the chain is split where it turns, its level start carries the
+    cordon on and the cane hangs from it, cut counted from the cordon's end."""
+    trunk = seg([0, 0, 0], [0, 0, 0.7], 0.015, "trunk")
+    cordon = seg([0, 0, 0.7], [0.35, 0, 0.7], 0.010, parent=0)
+    end = [0.47, 0.0, 0.7]
+    far = [0.52, 0.0, 1.15] if turn == "up" else [0.55, -0.35, 0.72]
+    tail, rising = seg([0.35, 0, 0.7], end, 0.008), seg(end, far, 0.004)
+    chain = Branch(np.vstack([tail.points, rising.points[1:]]),
+                   np.r_[tail.radii, rising.radii[1:]], "cane", 1)  # fmt: skip
+    sk = Skeleton([trunk, cordon, chain])
+    assert kinds_of(sk) == ["trunk", "cordon", "cordon", "cane"]
+    assert np.linalg.norm(sk.branches[2].points[-1] - end) < 0.01, sk.branches[2].points[-1]
+    assert sk.branches[3].parent == 2
+    (cut,) = cut_candidates(sk, "vine", 0.07)
+    d = np.linalg.norm(sk.branches[3].points - np.asarray(end), axis=1)
+    want = 0.008 + FIRST_NODE + 1.3 * 0.07  # off the carried-on cordon's surface
+    k = int(np.argmin(np.abs(d - want)))
+    assert np.linalg.norm(cut.point - sk.branches[3].points[k]) < 3e-3, (cut.point, want)
+
+
+@pytest.mark.parametrize(("heading", "kind"), [((1.0, 0.0), "cordon"), ((0.0, 1.0), "cane")])
+def test_a_cordons_last_centimetres_past_its_last_spur_carry_it_on(
+    heading: tuple[float, float], kind: str
+) -> None:
+    """An 8 cm level piece (8 mm) leaving a 40 cm cordon's end (10 mm): carrying it on in its
+    own direction it is a cordon (generated vines of seeds 12, 13: the cordon's last
+    centimetres past its last spur); heading 90 degrees off it is a cane."""
+    trunk = seg([0, 0, 0], [0, 0, 0.7], 0.015, "trunk")
+    cordon = seg([0, 0, 0.7], [0.4, 0, 0.7], 0.010, parent=0)
+    piece = seg([0.4, 0, 0.7], [0.4 + 0.08 * heading[0], 0.08 * heading[1], 0.7], 0.008, parent=1)
+    spur_cane = seg([0.3, 0, 0.7], [0.3, 0, 1.2], 0.004, parent=1)
+    assert kinds_of(Skeleton([trunk, cordon, piece, spur_cane])) == [
+        "trunk", "cordon", kind, "cane"]  # fmt: skip
