@@ -50,16 +50,16 @@ def test_a_bilateral_vines_thinner_cordon_is_a_cordon() -> None:
     assert kinds_of(lone) == ["trunk", "cane", "cane"]
 
 
-@pytest.mark.parametrize("turn", ["up", "sideways"])
+@pytest.mark.parametrize("turn", ["up", "down"])
 def test_a_cordons_end_on_the_chain_of_its_last_cane_is_split_where_it_turns(turn: str) -> None:
     """A 35 cm cordon (10 mm; trunk 15 mm) whose last 12 cm (8 mm) and the cane of its last spur
-    make one chain of the skeleton, the cane turning up (or sideways, level) there (generated
-    vines of seeds 9, 12, 13): the chain is split where it turns, its level start carries the
-    cordon on and the cane hangs from it, cut counted from the cordon's end."""
+    make one chain of the skeleton, the cane turning up (or a shoot hanging down) there
+    (generated vines of seeds 9, 12, 13): the chain is split where it turns, its level start
+    carries the cordon on and the cane hangs from it, cut counted from the cordon's end."""
     trunk = seg([0, 0, 0], [0, 0, 0.7], 0.015, "trunk")
     cordon = seg([0, 0, 0.7], [0.35, 0, 0.7], 0.010, parent=0)
     end = [0.47, 0.0, 0.7]
-    far = [0.52, 0.0, 1.15] if turn == "up" else [0.55, -0.35, 0.72]
+    far = [0.52, 0.0, 1.15] if turn == "up" else [0.52, 0.0, 0.25]
     tail, rising = seg([0.35, 0, 0.7], end, 0.008), seg(end, far, 0.004)
     chain = Branch(np.vstack([tail.points, rising.points[1:]]),
                    np.r_[tail.radii, rising.radii[1:]], "cane", 1)  # fmt: skip
@@ -87,3 +87,25 @@ def test_a_cordons_last_centimetres_past_its_last_spur_carry_it_on(
     spur_cane = seg([0.3, 0, 0.7], [0.3, 0, 1.2], 0.004, parent=1)
     assert kinds_of(Skeleton([trunk, cordon, piece, spur_cane])) == [
         "trunk", "cordon", kind, "cane"]  # fmt: skip
+
+
+def test_a_cordon_split_near_the_head_is_still_carried_on() -> None:
+    """The trunk's chain runs 13 cm along a cordon (10 mm) and turns up a cane; the cordon goes
+    on for 25 cm more in a chain of its own (9 mm) that turns up another cane (generated vine
+    seed 16): the first piece is too short for a cordon's 15 cm yet is one (an arm's shape at
+    the head), so the second is carried on from it, and both canes hang from cordon wood."""
+    trunk = seg([0, 0, 0], [0, 0, 0.7], 0.015, "trunk")
+    first = np.vstack([seg([0, 0, 0.7], [-0.13, 0, 0.7], 0.010).points,
+                       seg([-0.13, 0, 0.7], [-0.15, 0, 1.1], 0.0045).points[1:]])  # fmt: skip
+    r1 = np.r_[np.full(60, 0.010), np.full(59, 0.0045)]
+    on = np.vstack([seg([-0.12, 0, 0.7], [-0.37, 0, 0.7], 0.009).points,
+                    seg([-0.37, 0, 0.7], [-0.4, 0, 1.2], 0.004).points[1:]])  # fmt: skip
+    r2 = np.r_[np.full(60, 0.009), np.full(59, 0.004)]
+    sk = Skeleton([trunk, Branch(first, r1, "cane", 0), Branch(on, r2, "cane", 1)])
+    kinds = kinds_of(sk)
+    cordons = [b for b in sk.branches if b.kind == "cordon"]
+    assert len(cordons) == 2 and kinds.count("cane") == 2, kinds
+    assert min(float(b.points[:, 0].min()) for b in cordons) < -0.35
+    for b in sk.branches:
+        if b.kind == "cane":
+            assert sk.branches[b.parent].kind == "cordon"

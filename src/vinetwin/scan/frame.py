@@ -17,7 +17,6 @@ from vinetwin.scan.candidates import (
     CORDON_RADIUS,
     HEAD,
     carries_on,
-    heading,
     sister_cordons,
 )
 from vinetwin.twin.skeleton import Branch, Skeleton, arc_length
@@ -169,14 +168,14 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
     _continue_cordons(sk, up, roots, r_ref)
 
 
-def _turn_at(P: Array, s: Array, up: Array, before: float, way: Array | None = None) -> int | None:
+def _turn_at(P: Array, s: Array, up: Array, before: float) -> int | None:
     """The index where a branch first turns up or down by more than 40 degrees (its direction
-    over 3 points either side), or more than 40 degrees away from `way` when given, when that
-    is at least `before` (m) from its start and 5 cm before its end; else None."""
+    over 3 points either side), when that is at least `before` (m) from its start and 5 cm
+    before its end; else None. (Turning sideways is no end: the GDC vine's right cordon curls.)"""
     for k in range(1, len(P) - 1):
         t = P[min(k + 3, len(P) - 1)] - P[max(k - 3, 0)]
         t /= max(np.linalg.norm(t), 1e-9)
-        if abs(t @ up) > ARM_RISE or (way is not None and float(t @ way) < 0.766):
+        if abs(t @ up) > ARM_RISE:
             return k if s[k] >= before and s[-1] - s[k] >= 0.05 else None
     return None
 
@@ -239,19 +238,32 @@ def _level_and_thick(b: Branch, up: Array, r_ref: float) -> bool:
     return abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up)) < 0.5
 
 
+def _arm(b: Branch, up: Array, r_ref: float, heads: list[Array]) -> bool:
+    """A cordon's shape too short for `_level_and_thick`: `ARM_MIN` or more, leaving the
+    trunk's head (within `HEAD` of its top), thick, its chord within 40 degrees of level (a
+    cordon whose chain turned up into a cane 5-15 cm from the head, split there)."""
+    if b.length < ARM_MIN or float(np.median(b.radii)) < r_ref:
+        return False
+    if min((float(np.linalg.norm(b.points[0] - h)) for h in heads), default=1.0) > HEAD:
+        return False
+    return abs(float((b.points[-1] - b.points[0]) @ up)) <= ARM_RISE * b.length
+
+
 def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) -> None:
     """Where a cordon forks at its end, the skeleton's chain may run on into a shoot hanging
     from it while the cordon itself goes on as a branch of that shoot (measured on the GDC
-    vine: its right cordon's last 30 cm). A branch starting within `CONTINUE_WITHIN` of a cordon's end whose
-    thick part is a cordon's shape continues it: it hangs from the cordon, split where it
-    thins for good (a cordon tapers: thick by `candidates.CONTINUE_RADIUS` of the cordon's own
-    radius where that is under `r_ref`) or where it turns up or down (the cordon's last
-    centimetres and the cane of its last spur make one chain: measured on generated vines of
-    seeds 6-13), and a level piece of `ARM_MIN` or more carrying the cordon on in its own
-    direction (`candidates.carries_on`) is one too. Repeated from each new piece; in place, parents
-    first."""
+    vine: its right cordon's last 30 cm). A branch starting within `CONTINUE_WITHIN` of a
+    cordon's end whose thick part is a cordon's shape continues it: it hangs from the cordon,
+    split where it thins for good (a cordon tapers: thick by `candidates.CONTINUE_RADIUS` of
+    the cordon's own radius where that is under `r_ref`) or where it turns up or down 5 cm or
+    more on (the cordon's last centimetres and the cane of its last spur make one chain:
+    generated vines of seeds 6-21), and a level piece of `ARM_MIN` or more carrying the cordon
+    on in its own direction (`candidates.carries_on`) is one too. The cordons it starts from
+    include short ones at the head (`_arm`) and a bilateral vine's thinner one
+    (`candidates.sister_cordons`). Repeated from each new piece; in place, parents first."""
+    heads = [sk.branches[j].points[-1] for j in roots]
     queue = [i for i, b in enumerate(sk.branches)
-             if b.parent in roots and _level_and_thick(b, up, r_ref)]  # fmt: skip
+             if b.parent in roots and (_level_and_thick(b, up, r_ref) or _arm(b, up, r_ref, heads))]  # fmt: skip
     queue += sorted(sister_cordons(sk, up, r_ref))
     done = set(queue) | roots
     while queue:
@@ -263,8 +275,7 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
             if j in done or float(np.linalg.norm(b.points[0] - end)) > CONTINUE_WITHIN:
                 continue
             s = arc_length(b.points)
-            way = heading(sk.branches[c])
-            ks = [k for k in (_thin_from(s, b.radii, r_c), _turn_at(b.points, s, up, ARM_MIN, way))
+            ks = [k for k in (_thin_from(s, b.radii, r_c), _turn_at(b.points, s, up, ARM_MIN))
                   if k is not None]  # fmt: skip
             if ks:
                 _split_at(sk, j, min(ks))
