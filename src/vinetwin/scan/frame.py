@@ -274,6 +274,8 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
             b = sk.branches[j]
             if j in done or float(np.linalg.norm(b.points[0] - end)) > CONTINUE_WITHIN:
                 continue
+            if b.parent in roots:  # leaves the trunk beside it (on a D405 rig's scan of the
+                continue  # VSP vine a cane from the head was carried on from its 6 cm arm)
             s = arc_length(b.points)
             ks = [k for k in (_thin_from(s, b.radii, r_c), _turn_at(b.points, s, up, ARM_MIN))
                   if k is not None]  # fmt: skip
