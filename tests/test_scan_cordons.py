@@ -109,3 +109,20 @@ def test_a_cordon_split_near_the_head_is_still_carried_on() -> None:
     for b in sk.branches:
         if b.kind == "cane":
             assert sk.branches[b.parent].kind == "cordon"
+
+
+def test_a_cane_leaving_the_head_beside_a_short_arm_is_not_carried_on_from_it() -> None:
+    """A head-trained vine (trunk 19.9 mm): a 6 cm arm (12.5 mm) carrying a cane, and beside it
+    a cane leaving the trunk's head whose first 19 cm rise gently and read 9.3 mm thick (a D405
+    rig's smear), then turn up: the cane stays a cane (it leaves the trunk, not the arm's end)."""
+    trunk = seg([0, 0, 0], [0, 0, 0.5], 0.0199, "trunk")
+    arm = seg([0, 0, 0.5], [-0.06, 0, 0.5], 0.0125, parent=0)
+    on_arm = seg([-0.06, 0, 0.5], [-0.1, 0, 1.0], 0.005, parent=1)
+    start, bend = (
+        seg([0, 0, 0.5], [0.17, 0.05, 0.58], 0.0093),
+        seg([0.17, 0.05, 0.58], [0.25, 0.04, 0.95], 0.006),
+    )
+    cane = Branch(np.vstack([start.points, bend.points[1:]]), np.r_[start.radii, bend.radii[1:]],
+                  "cane", 0)  # fmt: skip
+    kinds = kinds_of(Skeleton([trunk, arm, on_arm, cane]))
+    assert kinds[:3] == ["trunk", "cordon", "cane"] and kinds.count("cordon") == 1, kinds
