@@ -146,7 +146,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--plants", nargs="*", default=[p for p in PLANTS if p != "virtual_vsp"],
+    ap.add_argument("--plants", nargs="*", default=[p for p in PLANTS if p not in HELD_OUT],
                     help="names of PLANTS, or sample@N / dense@N: a generated vine of seed N")  # fmt: skip
     ap.add_argument("--set", choices=("held-out", "development"),
                     help="the plants of HELD_OUT (no setting was chosen on them) or of DEVELOPMENT "

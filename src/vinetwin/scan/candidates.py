@@ -117,15 +117,27 @@ generated vines cordons run down to 0.43 of the trunk's radius while canes reach
 within one vine every cordon is thicker than every cane."""
 
 
-def _level(b: Branch, up: Array) -> bool:
-    """At least 15 cm long and level: its principal axis within 30 degrees of horizontal."""
-    if b.length < 0.15:
+def level_and_thick(b: Branch, up: Array, r_ref: float = 0.0) -> bool:
+    """At least 15 cm long, its median radius at least `r_ref`, and level (its principal axis
+    within 30 degrees of horizontal): a cordon's shape."""
+    if b.length < 0.15 or float(np.median(b.radii)) < r_ref:
         return False
     Q = b.points - b.points.mean(0)
     return abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up)) < 0.5
 
 
-def heading(c: Branch, last: float = 0.1) -> Array:
+def arm_shape(b: Branch, up: Array, heads: list[Array]) -> bool:
+    """A head-trained vine's arm, or a cordon cut short at the head: `ARM_MIN` or more long,
+    leaving the trunk's head (within `HEAD` of one of `heads`), its chord within 40 degrees of
+    level (`ARM_RISE`)."""
+    if b.length < ARM_MIN:
+        return False
+    if min((float(np.linalg.norm(b.points[0] - h)) for h in heads), default=1.0) > HEAD:
+        return False
+    return abs(float((b.points[-1] - b.points[0]) @ up)) < ARM_RISE * b.length
+
+
+def _heading(c: Branch, last: float = 0.1) -> Array:
     """The unit direction of a branch's last `last` metres."""
     s = arc_length(c.points)
     e = c.points[-1] - c.points[min(int(np.searchsorted(s, s[-1] - last)), len(s) - 2)]
@@ -143,7 +155,7 @@ def carries_on(b: Branch, c: Branch, up: Array, r_c: float) -> bool:
     d = b.points[-1] - b.points[0]
     if abs(float(d @ up)) > ARM_RISE * b.length:
         return False
-    return float(d @ heading(c)) >= 0.82 * float(np.linalg.norm(d))
+    return float(d @ _heading(c)) >= 0.82 * float(np.linalg.norm(d))
 
 
 def sister_cordons(sk: Skeleton, up: Array, r_ref: float) -> set[int]:
@@ -157,7 +169,7 @@ def sister_cordons(sk: Skeleton, up: Array, r_ref: float) -> set[int]:
     head = sk.branches[roots[0]].points[-1]
     kids = [i for i, b in enumerate(sk.branches)
             if b.parent in roots and float(np.linalg.norm(b.points[0] - head)) <= HEAD
-            and _level(b, up)]  # fmt: skip
+            and level_and_thick(b, up)]  # fmt: skip
     med = {i: float(np.median(sk.branches[i].radii)) for i in kids}
 
     def way(i: int) -> Array:
@@ -194,14 +206,10 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
         elif plant == "tree":
             kind = "branch"
         else:
-            Q = b.points - b.points.mean(0)
-            flat = abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up))  # |sin| of its slope
             parent_kind = sk.branches[b.parent].kind
             thick = float(np.median(b.radii)) >= CORDON_RADIUS * r_trunk or i in sisters
-            rise = abs(float((b.points[-1] - b.points[0]) @ up)) / max(b.length, 1e-9)
-            arm = (b.length >= ARM_MIN and bool(children[i]) and rise < ARM_RISE
-                   and float(np.linalg.norm(b.points[0] - head)) <= HEAD)  # fmt: skip
-            cordon = parent_kind in ("trunk", "cordon") and b.length > 0.15 and flat < 0.5
+            arm = bool(children[i]) and arm_shape(b, up, [head])
+            cordon = parent_kind in ("trunk", "cordon") and level_and_thick(b, up)
             pb = sk.branches[b.parent]  # a cordon's continuation from its end, tapering
             tapers = (parent_kind == "cordon" and float(np.linalg.norm(b.points[0] - pb.points[-1])) <= CONTINUE_WITHIN
                       and float(np.median(b.radii)) >= CONTINUE_RADIUS * float(np.median(pb.radii)))  # fmt: skip

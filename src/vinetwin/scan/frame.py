@@ -16,7 +16,9 @@ from vinetwin.scan.candidates import (
     CONTINUE_WITHIN,
     CORDON_RADIUS,
     HEAD,
+    arm_shape,
     carries_on,
+    level_and_thick,
     sister_cordons,
 )
 from vinetwin.twin.skeleton import Branch, Skeleton, arc_length
@@ -229,26 +231,6 @@ def _split_at(sk: Skeleton, i: int, k: int) -> None:
                 c.parent = new
 
 
-def _level_and_thick(b: Branch, up: Array, r_ref: float) -> bool:
-    """At least 15 cm long, its median radius at least `r_ref`, and level (its principal axis
-    within 30 degrees of horizontal): a cordon's shape."""
-    if b.length < 0.15 or float(np.median(b.radii)) < r_ref:
-        return False
-    Q = b.points - b.points.mean(0)
-    return abs(float(np.linalg.eigh(Q.T @ Q)[1][:, -1] @ up)) < 0.5
-
-
-def _arm(b: Branch, up: Array, r_ref: float, heads: list[Array]) -> bool:
-    """A cordon's shape too short for `_level_and_thick`: `ARM_MIN` or more, leaving the
-    trunk's head (within `HEAD` of its top), thick, its chord within 40 degrees of level (a
-    cordon whose chain turned up into a cane 5-15 cm from the head, split there)."""
-    if b.length < ARM_MIN or float(np.median(b.radii)) < r_ref:
-        return False
-    if min((float(np.linalg.norm(b.points[0] - h)) for h in heads), default=1.0) > HEAD:
-        return False
-    return abs(float((b.points[-1] - b.points[0]) @ up)) <= ARM_RISE * b.length
-
-
 def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) -> None:
     """Where a cordon forks at its end, the skeleton's chain may run on into a shoot hanging
     from it while the cordon itself goes on as a branch of that shoot (measured on the GDC
@@ -259,11 +241,12 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
     more on (the cordon's last centimetres and the cane of its last spur make one chain:
     generated vines of seeds 6-21), and a level piece of `ARM_MIN` or more carrying the cordon
     on in its own direction (`candidates.carries_on`) is one too. The cordons it starts from
-    include short ones at the head (`_arm`) and a bilateral vine's thinner one
+    include short ones at the head (`candidates.arm_shape`) and a bilateral vine's thinner one
     (`candidates.sister_cordons`). Repeated from each new piece; in place, parents first."""
     heads = [sk.branches[j].points[-1] for j in roots]
-    queue = [i for i, b in enumerate(sk.branches)
-             if b.parent in roots and (_level_and_thick(b, up, r_ref) or _arm(b, up, r_ref, heads))]  # fmt: skip
+    queue = [i for i, b in enumerate(sk.branches) if b.parent in roots and (
+        level_and_thick(b, up, r_ref)
+        or (arm_shape(b, up, heads) and float(np.median(b.radii)) >= r_ref))]  # fmt: skip
     queue += sorted(sister_cordons(sk, up, r_ref))
     done = set(queue) | roots
     while queue:
@@ -274,15 +257,17 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
             b = sk.branches[j]
             if j in done or float(np.linalg.norm(b.points[0] - end)) > CONTINUE_WITHIN:
                 continue
-            if b.parent in roots:  # leaves the trunk beside it (on a D405 rig's scan of the
-                continue  # VSP vine a cane from the head was carried on from its 6 cm arm)
+            if b.parent in roots:
+                # it leaves the trunk beside the cordon, not the cordon's end (on a D405 rig's
+                # scan of the VSP vine a cane from the head was carried on from its 6 cm arm)
+                continue
             s = arc_length(b.points)
             ks = [k for k in (_thin_from(s, b.radii, r_c), _turn_at(b.points, s, up, ARM_MIN))
                   if k is not None]  # fmt: skip
             if ks:
                 _split_at(sk, j, min(ks))
             b = sk.branches[j]
-            if not (_level_and_thick(b, up, r_c) or carries_on(b, sk.branches[c], up, r_c)):
+            if not (level_and_thick(b, up, r_c) or carries_on(b, sk.branches[c], up, r_c)):
                 continue
             sk.branches[j].parent = c
             done.add(j)
