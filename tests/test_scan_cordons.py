@@ -11,6 +11,7 @@ import pytest
 from vinetwin.scan.candidates import CORDON_RADIUS, SISTER, cut_candidates, label_kinds
 from vinetwin.scan.config import FIRST_NODE
 from vinetwin.scan.frame import split_cordons
+from vinetwin.scan.refine import straighten_bumps
 from vinetwin.twin.skeleton import Branch, Skeleton
 
 LINE = np.linspace(0, 1, 60)[:, None]
@@ -46,7 +47,8 @@ def test_a_bilateral_vines_thinner_cordon_is_a_cordon() -> None:
     kinds_of(sk)
     cut = next(c for c in cut_candidates(sk, "vine", 0.07) if c.branch == 3)
     assert abs(cut.point[2] - (0.7 + 0.0083 + FIRST_NODE + 1.3 * 0.07)) < 2e-3, cut.point
-    lone = Skeleton([trunk, seg([0, 0, 0.7], [-0.35, 0, 0.7], 0.0083, parent=0), cane])
+    lone = Skeleton([trunk, seg([0, 0, 0.7], [-0.35, 0, 0.7], 0.0083, parent=0),
+                     seg([-0.2, 0, 0.7], [-0.2, 0, 1.2], 0.004, parent=1)])  # fmt: skip
     assert kinds_of(lone) == ["trunk", "cane", "cane"]
 
 
@@ -126,3 +128,48 @@ def test_a_cane_leaving_the_head_beside_a_short_arm_is_not_carried_on_from_it() 
                   "cane", 0)  # fmt: skip
     kinds = kinds_of(Skeleton([trunk, arm, on_arm, cane]))
     assert kinds[:3] == ["trunk", "cordon", "cane"] and kinds.count("cordon") == 1, kinds
+
+
+def test_a_cordons_tail_hanging_from_a_cane_listed_before_it_is_carried_on() -> None:
+    """A trunk (18 mm) whose chain runs level 28 cm at 10 mm, 30 cm more at 8 mm (under the
+    trunk's rule: split off), then turns up a cane; the cordon's last 8.5 cm (7 mm) hang from
+    that cane and come before the cordon's pieces in the branch list (generated vine seed 8):
+    they carry the cordon on all the same, and parents still come first."""
+    trunk = seg([0, 0, 0], [0, 0, 0.7], 0.018, "trunk")
+    parts = [seg([0, 0, 0.7], [0.28, 0, 0.7], 0.010), seg([0.28, 0, 0.7], [0.58, 0, 0.7], 0.008),
+             seg([0.58, 0, 0.7], [0.6, 0, 1.2], 0.004)]  # fmt: skip
+    chain = Branch(np.vstack([parts[0].points] + [p.points[1:] for p in parts[1:]]),
+                   np.r_[parts[0].radii, parts[1].radii[1:], parts[2].radii[1:]], "cane", 0)  # fmt: skip
+    tail = seg([0.585, 0, 0.712], [0.67, 0, 0.7], 0.007, parent=1)
+    sk = Skeleton([trunk, chain, tail])
+    kinds_of(sk)
+    (t,) = [b for b in sk.branches if np.linalg.norm(b.points[-1] - [0.67, 0, 0.7]) < 1e-6]
+    assert t.kind == "cordon", [(b.kind, b.parent) for b in sk.branches]
+    assert sk.branches[t.parent].kind == "cordon"
+    assert sum(b.kind == "cordon" for b in sk.branches) == 3
+    assert all(b.parent < i for i, b in enumerate(sk.branches)), [b.parent for b in sk.branches]
+
+
+def test_a_cordons_axis_pulled_up_into_a_spur_is_straightened() -> None:
+    """A level 50 cm cordon (9 mm) whose skeleton rises 18 mm into a spur over 4 cm, with a cane
+    going up from there (generated vine seed 9): `straighten_bumps` puts that stretch back on
+    the cordon's line, the cane starts there, and its cut stands the rule's offset off the
+    cordon's true surface (it came 1.5-2 cm high). A cordon bending with a 25 cm radius is left
+    as it is."""
+    x = np.linspace(0, 0.5, 51)
+    z = 0.7 + 0.018 * np.clip(1 - np.abs(x - 0.255) / 0.02, 0, 1)
+    cordon = Branch(np.c_[x, np.zeros_like(x), z], np.full(51, 0.009), "cordon", 0)
+    trunk = seg([0, 0, 0], [0, 0, 0.7], 0.018, "trunk")
+    cane = seg([0.255, 0, 0.718], [0.26, 0, 1.3], 0.004, parent=1)
+    sk = Skeleton([trunk, cordon, cane])
+    assert straighten_bumps(sk) > 0
+    assert np.abs(sk.branches[1].points[:, 2] - 0.7).max() < 2e-3
+    assert abs(sk.branches[2].points[0, 2] - 0.7) < 2e-3
+    (cut,) = cut_candidates(sk, "vine", 0.07)
+    assert abs(cut.point[2] - (0.7 + 0.009 + FIRST_NODE + 1.3 * 0.07)) < 3e-3, cut.point
+    a = np.linspace(0, 2.0, 60)  # 50 cm of a 25 cm-radius bend, level
+    bend = np.c_[0.25 * np.sin(a), 0.25 * (1 - np.cos(a)), np.full(60, 0.7)]
+    curved = Skeleton([trunk, Branch(bend, np.full(60, 0.009), "cordon", 0)])
+    before = curved.branches[1].points.copy()
+    assert straighten_bumps(curved) == 0
+    assert np.array_equal(curved.branches[1].points, before)

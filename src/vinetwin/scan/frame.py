@@ -253,9 +253,17 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
         c = queue.pop()
         end = sk.branches[c].points[-1]
         r_c = min(r_ref, CONTINUE_RADIUS * float(np.median(sk.branches[c].radii)))
-        for j in range(c + 1, len(sk.branches)):
+        above = _ancestors(sk, c)
+        # any branch, not only those after it: a split appends the cordon's new piece after
+        # the shoot that carries its tail on (a generated vine of seed 8: the cordon's last
+        # 9 cm hung from the cane its chain ran into)
+        for j in range(len(sk.branches)):
             b = sk.branches[j]
-            if j in done or float(np.linalg.norm(b.points[0] - end)) > CONTINUE_WITHIN:
+            if (
+                j in done
+                or j in above
+                or float(np.linalg.norm(b.points[0] - end)) > CONTINUE_WITHIN
+            ):
                 continue
             if b.parent in roots:
                 # it leaves the trunk beside the cordon, not the cordon's end (on a D405 rig's
@@ -272,6 +280,39 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
             sk.branches[j].parent = c
             done.add(j)
             queue.append(j)
+    _parents_first(sk)
+
+
+def _ancestors(sk: Skeleton, i: int) -> set[int]:
+    """Branch i and the branches it hangs from."""
+    out = {i}
+    while sk.branches[i].parent >= 0 and sk.branches[i].parent not in out:
+        i = sk.branches[i].parent
+        out.add(i)
+    return out
+
+
+def _parents_first(sk: Skeleton) -> None:
+    """Orders the branches so that each comes after its parent (roots first, then each
+    branch's children in their order), in place; parents and candidates renumbered."""
+    kids: list[list[int]] = [[] for _ in sk.branches]
+    order = [i for i, b in enumerate(sk.branches) if b.parent < 0]
+    for i, b in enumerate(sk.branches):
+        if b.parent >= 0:
+            kids[b.parent].append(i)
+    for i in order:
+        order.extend(kids[i])
+    if order == list(range(len(sk.branches))) or len(order) != len(sk.branches):
+        return  # in order already, or not a tree (a branch its own ancestor): left as it is
+    new = {old: k for k, old in enumerate(order)}
+    branches = [sk.branches[i] for i in order]
+    for b in branches:
+        if b.parent >= 0:
+            b.parent = new[b.parent]
+    sk.branches = branches
+    for cand in sk.candidates:
+        if cand.branch >= 0:
+            cand.branch = new[cand.branch]
 
 
 def _thin_from(s: Array, r: Array, r_ref: float, window: float = 0.03) -> int | None:

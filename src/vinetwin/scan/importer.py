@@ -36,6 +36,7 @@ from vinetwin.scan.read import (
     sample_mesh_surface,
     spacing_and_extent,
 )
+from vinetwin.scan.refine import straighten_bumps
 from vinetwin.scan.result import ScanImport
 from vinetwin.scan.skeletonize import skeletonize
 from vinetwin.twin.skeleton import Skeleton
@@ -132,6 +133,8 @@ def analyse_scan(
         split_trunk(sk, z)
         split_cordons(sk, z)
     label_kinds(sk, z, config.plant)
+    if config.plant == "vine":
+        straighten_bumps(sk)  # a spur's base pulls the cordon's axis (`scan.refine`)
     cands = cut_candidates(sk, config.plant, config.internode)
     sk.candidates = [c for c in cands if sk.branches[c.branch].kind not in ("trunk", "cordon")]
     step("frame and candidates")

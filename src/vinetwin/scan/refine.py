@@ -131,3 +131,75 @@ def refine_axes(sk: Skeleton, points: Array, passes: int = 2) -> None:
         for b in sk.branches:  # children start on their parent's new axis
             if b.parent >= 0 and len(b.points) >= 2:
                 b.points[0] = nearest_on_polyline(b.points[1], sk.branches[b.parent].points)[2]
+
+
+def _along(P: Array, s: Array, q: Array | float) -> Array:
+    """The points of polyline `P` (arc lengths `s`) at arc lengths `q`."""
+    return np.stack([np.interp(q, s, P[:, d]) for d in range(3)], -1)
+
+
+BUMP_SPAN = 0.03
+"""Half the span (m of arc) over which permanent wood is taken for straight (`straighten_bumps`)."""
+
+
+BUMP_PASSES = 3
+"""Passes of `straighten_bumps` over a branch, until one moves nothing."""
+
+
+def _straighten(P: Array, r: Array) -> tuple[Array, int]:
+    """One pass of `straighten_bumps` over a polyline with radii `r`: the new points and how
+    many moved."""
+    s = arc_length(P)
+    inner = np.flatnonzero((s >= BUMP_SPAN) & (s <= s[-1] - BUMP_SPAN))
+    if not len(inner):
+        return P, 0
+    a, c = _along(P, s, s[inner] - BUMP_SPAN), _along(P, s, s[inner] + BUMP_SPAN)
+    ac = c - a
+    t = np.einsum("ij,ij->i", P[inner] - a, ac) / np.maximum((ac * ac).sum(1), 1e-12)
+    off = np.linalg.norm(P[inner] - (a + np.clip(t, 0, 1)[:, None] * ac), axis=1)
+    bad = inner[off > r[inner]]
+    if not len(bad):
+        return P, 0
+    new = P.copy()
+    moved = 0
+    for run in np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1):
+        lo = max(s[run[0]] - 2 * BUMP_SPAN / 3, 0.0)
+        hi = min(s[run[-1]] + 2 * BUMP_SPAN / 3, s[-1])
+        pa, pc = _along(P, s, lo), _along(P, s, hi)
+        k = np.flatnonzero((s > lo) & (s < hi))
+        f = (s[k] - lo) / max(hi - lo, 1e-12)
+        new[k] = pa + f[:, None] * (pc - pa)
+        moved += len(k)
+    return new, moved
+
+
+def straighten_bumps(sk: Skeleton, kinds: tuple[str, ...] = ("trunk", "cordon")) -> int:
+    """Takes the detours out of the axes of a vine's permanent wood (in place): a node standing
+    more than its radius off the chord between its branch's points `BUMP_SPAN` before and after
+    it is a detour, and the run of such nodes, with `2/3 BUMP_SPAN` more either side, is put on
+    the straight line between the ends of that stretch. Children starting there start on the
+    new axis. Returns the nodes moved.
+
+    Where a spur stands up from a cordon, a level set of the geodesic distance holds the spur's
+    base with the cordon's points: its centre rises into the spur, and `refine_axes` keeps it
+    there when the fit would move it farther than the radius. Measured on the realistic scans
+    of generated dense vines (seeds 6-11): such detours ran 9-20 mm off the true cordon over
+    2-4 cm, and cuts placed 10.85 cm off the wood's surface came 1-2.6 cm nearer the cordon
+    for every cane whose path passed by. Thick wood does not bend that sharply (a 20 cm bend
+    radius is 2.3 mm off a 6 cm chord), so the chord is the better axis there."""
+    moved = 0
+    changed = set()
+    for i, b in enumerate(sk.branches):
+        if b.kind not in kinds or len(b.points) < 5:
+            continue
+        for _ in range(BUMP_PASSES):  # a wide detour leans the chords of its first pass
+            P, n = _straighten(b.points, b.radii)
+            if not n:
+                break
+            b.points = P
+            moved += n
+            changed.add(i)
+    for c in sk.branches:  # children start on their parent's new axis
+        if c.parent in changed and len(c.points) >= 2:
+            c.points[0] = nearest_on_polyline(c.points[1], sk.branches[c.parent].points)[2]
+    return moved
