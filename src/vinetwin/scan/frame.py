@@ -293,17 +293,28 @@ def _ancestors(sk: Skeleton, i: int) -> set[int]:
 
 
 def _parents_first(sk: Skeleton) -> None:
-    """Orders the branches so that each comes after its parent (roots first, then each
-    branch's children in their order), in place; parents and candidates renumbered."""
+    """Orders the branches so that each comes after its parent, keeping the order they have
+    where it already does (the smallest index whose parent is placed goes next), in place;
+    parents and candidates renumbered."""
+    n = len(sk.branches)
+    if all(b.parent < i for i, b in enumerate(sk.branches)):
+        return
+    import heapq
+
     kids: list[list[int]] = [[] for _ in sk.branches]
-    order = [i for i, b in enumerate(sk.branches) if b.parent < 0]
+    ready = [i for i, b in enumerate(sk.branches) if b.parent < 0]
     for i, b in enumerate(sk.branches):
         if b.parent >= 0:
             kids[b.parent].append(i)
-    for i in order:
-        order.extend(kids[i])
-    if order == list(range(len(sk.branches))) or len(order) != len(sk.branches):
-        return  # in order already, or not a tree (a branch its own ancestor): left as it is
+    heapq.heapify(ready)
+    order: list[int] = []
+    while ready:
+        i = heapq.heappop(ready)
+        order.append(i)
+        for c in kids[i]:
+            heapq.heappush(ready, c)
+    if len(order) != n:
+        return  # not a tree (a branch its own ancestor): left as it is
     new = {old: k for k, old in enumerate(order)}
     branches = [sk.branches[i] for i in order]
     for b in branches:
