@@ -155,7 +155,8 @@ def test_a_cordons_axis_pulled_up_into_a_spur_is_straightened() -> None:
     going up from there (generated vine seed 9): `straighten_bumps` puts that stretch back on
     the cordon's line, the cane starts there, and its cut stands the rule's offset off the
     cordon's true surface (it came 1.5-2 cm high). A cordon bending with a 25 cm radius is left
-    as it is."""
+    as it is, and so is an arm turning 60 degrees at a corner (the VSP vine's, 15 mm off the
+    chord across it: a corner, not a detour)."""
     x = np.linspace(0, 0.5, 51)
     z = 0.7 + 0.018 * np.clip(1 - np.abs(x - 0.255) / 0.02, 0, 1)
     cordon = Branch(np.c_[x, np.zeros_like(x), z], np.full(51, 0.009), "cordon", 0)
@@ -173,3 +174,8 @@ def test_a_cordons_axis_pulled_up_into_a_spur_is_straightened() -> None:
     before = curved.branches[1].points.copy()
     assert straighten_bumps(curved) == 0
     assert np.array_equal(curved.branches[1].points, before)
+    d = np.array([np.cos(np.radians(60)), np.sin(np.radians(60)), 0.0])
+    arm = np.vstack([np.c_[np.linspace(0, 0.12, 25), np.zeros((25, 1)), np.full((25, 1), 0.7)],
+                     [0.12, 0, 0.7] + np.linspace(0, 0.1, 21)[1:, None] * d])  # fmt: skip
+    corner = Skeleton([trunk, Branch(arm, np.full(len(arm), 0.012), "cordon", 0)])
+    assert straighten_bumps(corner) == 0

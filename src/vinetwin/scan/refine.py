@@ -142,6 +142,10 @@ BUMP_SPAN = 0.03
 """Half the span (m of arc) over which permanent wood is taken for straight (`straighten_bumps`)."""
 
 
+BUMP_HEADING = 0.9
+"""A detour returns to its line: the axis's heading over the `BUMP_SPAN` before it and the one
+after it are within 25 degrees (cosine at least this)."""
+
 BUMP_PASSES = 3
 """Passes of `straighten_bumps` over a branch, until one moves nothing."""
 
@@ -157,7 +161,18 @@ def _straighten(P: Array, r: Array) -> tuple[Array, int]:
     ac = c - a
     t = np.einsum("ij,ij->i", P[inner] - a, ac) / np.maximum((ac * ac).sum(1), 1e-12)
     off = np.linalg.norm(P[inner] - (a + np.clip(t, 0, 1)[:, None] * ac), axis=1)
-    bad = inner[off > r[inner]]
+    # out and back onto one line, not a corner: the axis heads the same way before and after
+    # (the VSP vine's arm turns 60 degrees at a digitised node, 15 mm off such a chord)
+    s_lo = np.maximum(s[inner] - 2 * BUMP_SPAN, 0.0)
+    s_hi = np.minimum(s[inner] + 2 * BUMP_SPAN, s[-1])
+    before = s[inner] - BUMP_SPAN - s_lo >= 0.01
+    after = s_hi - s[inner] - BUMP_SPAN >= 0.01
+    u = _along(P, s, s[inner] - BUMP_SPAN) - _along(P, s, s_lo)
+    v = _along(P, s, s_hi) - _along(P, s, s[inner] + BUMP_SPAN)
+    cos = np.einsum("ij,ij->i", u, v) / np.maximum(
+        np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1), 1e-12
+    )
+    bad = inner[(off > r[inner]) & before & after & (cos >= BUMP_HEADING)]
     if not len(bad):
         return P, 0
     new = P.copy()
@@ -173,12 +188,14 @@ def _straighten(P: Array, r: Array) -> tuple[Array, int]:
     return new, moved
 
 
-def straighten_bumps(sk: Skeleton, kinds: tuple[str, ...] = ("trunk", "cordon")) -> int:
-    """Takes the detours out of the axes of a vine's permanent wood (in place): a node standing
-    more than its radius off the chord between its branch's points `BUMP_SPAN` before and after
-    it is a detour, and the run of such nodes, with `2/3 BUMP_SPAN` more either side, is put on
-    the straight line between the ends of that stretch. Children starting there start on the
-    new axis. Returns the nodes moved.
+def straighten_bumps(sk: Skeleton, kinds: tuple[str, ...] = ("cordon",)) -> int:
+    """Takes the detours out of the axes of a vine's cordons (in place): a node standing more
+    than its radius off the chord between its branch's points `BUMP_SPAN` before and after it,
+    where the axis heads the same way before and after (`BUMP_HEADING`: a detour, not a
+    corner), is a detour, and the run of such nodes, with `2/3 BUMP_SPAN` more either side, is
+    put on the straight line between the ends of that stretch. Children starting there start
+    on the new axis. Returns the nodes moved. (The trunk is left alone: straightening it too
+    moved the head-trained VSP vine's arm and lost a cane on a generated vine.)
 
     Where a spur stands up from a cordon, a level set of the geodesic distance holds the spur's
     base with the cordon's points: its centre rises into the spur, and `refine_axes` keeps it
@@ -186,7 +203,8 @@ def straighten_bumps(sk: Skeleton, kinds: tuple[str, ...] = ("trunk", "cordon"))
     of generated dense vines (seeds 6-11): such detours ran 9-20 mm off the true cordon over
     2-4 cm, and cuts placed 10.85 cm off the wood's surface came 1-2.6 cm nearer the cordon
     for every cane whose path passed by. Thick wood does not bend that sharply (a 20 cm bend
-    radius is 2.3 mm off a 6 cm chord), so the chord is the better axis there."""
+    radius is 2.3 mm off a 6 cm chord), so the chord is the better axis there; a corner is
+    left, for arms do turn sharply (the VSP vine's turns 60 degrees at a digitised node)."""
     moved = 0
     changed = set()
     for i, b in enumerate(sk.branches):
