@@ -5,6 +5,8 @@ scanner's frame."""
 
 from __future__ import annotations
 
+import heapq
+
 import numpy as np
 
 from vinetwin.errors import InputError
@@ -21,7 +23,7 @@ from vinetwin.scan.candidates import (
     level_and_thick,
     sister_cordons,
 )
-from vinetwin.twin.skeleton import Branch, Skeleton, arc_length
+from vinetwin.twin.skeleton import Branch, Skeleton, ancestors, arc_length
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -140,7 +142,7 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
     `candidates.CORDON_RADIUS` of the trunk's radius (where the skeleton followed the cordon on
     into the cane or shoot of its last spur), or, first of all, where an arm's thick start ends
     (`_arm_end`, from 5 cm); in place. The rest becomes a branch of its own,
-    hanging from the cordon's end, appended (the order stays parents-first)."""
+    hanging from the cordon's end, appended; at the end the branches are put parents first."""
     roots = {i for i, b in enumerate(sk.branches) if b.parent < 0}
     r_ref = CORDON_RADIUS * float(np.median(sk.branches[min(roots)].radii)) if roots else 0.0
     heads = [sk.branches[j].points[-1] for j in roots]
@@ -168,6 +170,7 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
             continue
         _split_at(sk, i, k_split)
     _continue_cordons(sk, up, roots, r_ref)
+    _parents_first(sk)  # a split appends a branch its children may come before
 
 
 def _turn_at(P: Array, s: Array, up: Array, before: float) -> int | None:
@@ -242,7 +245,7 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
     generated vines of seeds 6-21), and a level piece of `ARM_MIN` or more carrying the cordon
     on in its own direction (`candidates.carries_on`) is one too. The cordons it starts from
     include short ones at the head (`candidates.arm_shape`) and a bilateral vine's thinner one
-    (`candidates.sister_cordons`). Repeated from each new piece; in place, parents first."""
+    (`candidates.sister_cordons`). Repeated from each new piece; in place."""
     heads = [sk.branches[j].points[-1] for j in roots]
     queue = [i for i, b in enumerate(sk.branches) if b.parent in roots and (
         level_and_thick(b, up, r_ref)
@@ -253,7 +256,7 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
         c = queue.pop()
         end = sk.branches[c].points[-1]
         r_c = min(r_ref, CONTINUE_RADIUS * float(np.median(sk.branches[c].radii)))
-        above = _ancestors(sk, c)
+        above = ancestors(sk, c)
         # any branch, not only those after it: a split appends the cordon's new piece after
         # the shoot that carries its tail on (a generated vine of seed 8: the cordon's last
         # 9 cm hung from the cane its chain ran into)
@@ -280,16 +283,6 @@ def _continue_cordons(sk: Skeleton, up: Array, roots: set[int], r_ref: float) ->
             sk.branches[j].parent = c
             done.add(j)
             queue.append(j)
-    _parents_first(sk)
-
-
-def _ancestors(sk: Skeleton, i: int) -> set[int]:
-    """Branch i and the branches it hangs from."""
-    out = {i}
-    while sk.branches[i].parent >= 0 and sk.branches[i].parent not in out:
-        i = sk.branches[i].parent
-        out.add(i)
-    return out
 
 
 def _parents_first(sk: Skeleton) -> None:
@@ -299,8 +292,6 @@ def _parents_first(sk: Skeleton) -> None:
     n = len(sk.branches)
     if all(b.parent < i for i, b in enumerate(sk.branches)):
         return
-    import heapq
-
     kids: list[list[int]] = [[] for _ in sk.branches]
     ready = [i for i, b in enumerate(sk.branches) if b.parent < 0]
     for i, b in enumerate(sk.branches):

@@ -29,7 +29,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vinetwin.frames import Array
-from vinetwin.twin.skeleton import Skeleton, arc_length, nearest_on_polyline, resample
+from vinetwin.twin.skeleton import (
+    Skeleton,
+    arc_length,
+    children_on_axes,
+    point_at,
+    resample,
+)
 
 #: Fewest points in a node's slab for it to be re-fitted.
 MIN_POINTS = 10
@@ -128,14 +134,7 @@ def refine_axes(sk: Skeleton, points: Array, passes: int = 2) -> None:
                 if np.linalg.norm(c - b.points[v]) <= b.radii[v] + 0.001:
                     P[v], R[v] = c, r
             b.points, b.radii = P, np.maximum(median5(R) if n >= 5 else R, 5e-4)
-        for b in sk.branches:  # children start on their parent's new axis
-            if b.parent >= 0 and len(b.points) >= 2:
-                b.points[0] = nearest_on_polyline(b.points[1], sk.branches[b.parent].points)[2]
-
-
-def _along(P: Array, s: Array, q: Array | float) -> Array:
-    """The points of polyline `P` (arc lengths `s`) at arc lengths `q`."""
-    return np.stack([np.interp(q, s, P[:, d]) for d in range(3)], -1)
+        children_on_axes(sk)
 
 
 BUMP_SPAN = 0.03
@@ -157,7 +156,7 @@ def _straighten(P: Array, r: Array) -> tuple[Array, int]:
     inner = np.flatnonzero((s >= BUMP_SPAN) & (s <= s[-1] - BUMP_SPAN))
     if not len(inner):
         return P, 0
-    a, c = _along(P, s, s[inner] - BUMP_SPAN), _along(P, s, s[inner] + BUMP_SPAN)
+    a, c = point_at(P, s, s[inner] - BUMP_SPAN), point_at(P, s, s[inner] + BUMP_SPAN)
     ac = c - a
     t = np.einsum("ij,ij->i", P[inner] - a, ac) / np.maximum((ac * ac).sum(1), 1e-12)
     off = np.linalg.norm(P[inner] - (a + np.clip(t, 0, 1)[:, None] * ac), axis=1)
@@ -167,8 +166,7 @@ def _straighten(P: Array, r: Array) -> tuple[Array, int]:
     s_hi = np.minimum(s[inner] + 2 * BUMP_SPAN, s[-1])
     before = s[inner] - BUMP_SPAN - s_lo >= 0.01
     after = s_hi - s[inner] - BUMP_SPAN >= 0.01
-    u = _along(P, s, s[inner] - BUMP_SPAN) - _along(P, s, s_lo)
-    v = _along(P, s, s_hi) - _along(P, s, s[inner] + BUMP_SPAN)
+    u, v = a - point_at(P, s, s_lo), point_at(P, s, s_hi) - c
     cos = np.einsum("ij,ij->i", u, v) / np.maximum(
         np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1), 1e-12
     )
@@ -180,7 +178,7 @@ def _straighten(P: Array, r: Array) -> tuple[Array, int]:
     for run in np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1):
         lo = max(s[run[0]] - 2 * BUMP_SPAN / 3, 0.0)
         hi = min(s[run[-1]] + 2 * BUMP_SPAN / 3, s[-1])
-        pa, pc = _along(P, s, lo), _along(P, s, hi)
+        pa, pc = point_at(P, s, lo), point_at(P, s, hi)
         k = np.flatnonzero((s > lo) & (s < hi))
         f = (s[k] - lo) / max(hi - lo, 1e-12)
         new[k] = pa + f[:, None] * (pc - pa)
@@ -188,7 +186,7 @@ def _straighten(P: Array, r: Array) -> tuple[Array, int]:
     return new, moved
 
 
-def straighten_bumps(sk: Skeleton, kinds: tuple[str, ...] = ("cordon",)) -> int:
+def straighten_bumps(sk: Skeleton) -> int:
     """Takes the detours out of the axes of a vine's cordons (in place): a node standing more
     than its radius off the chord between its branch's points `BUMP_SPAN` before and after it,
     where the axis heads the same way before and after (`BUMP_HEADING`: a detour, not a
@@ -208,7 +206,7 @@ def straighten_bumps(sk: Skeleton, kinds: tuple[str, ...] = ("cordon",)) -> int:
     moved = 0
     changed = set()
     for i, b in enumerate(sk.branches):
-        if b.kind not in kinds or len(b.points) < 5:
+        if b.kind != "cordon" or len(b.points) < 5:
             continue
         for _ in range(BUMP_PASSES):  # a wide detour leans the chords of its first pass
             P, n = _straighten(b.points, b.radii)
@@ -217,7 +215,5 @@ def straighten_bumps(sk: Skeleton, kinds: tuple[str, ...] = ("cordon",)) -> int:
             b.points = P
             moved += n
             changed.add(i)
-    for c in sk.branches:  # children start on their parent's new axis
-        if c.parent in changed and len(c.points) >= 2:
-            c.points[0] = nearest_on_polyline(c.points[1], sk.branches[c.parent].points)[2]
+    children_on_axes(sk, changed)
     return moved

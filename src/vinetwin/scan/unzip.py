@@ -40,6 +40,7 @@ from vinetwin.twin.skeleton import (
     arc_of_nearest,
     axis_samples,
     nearest_on_polyline,
+    point_at,
 )
 
 #: Degrees: only a child leaving its parent within this of the parent's heading can have run
@@ -75,10 +76,6 @@ SLAB = 2.0
 
 def _unit(v: Array) -> Array:
     return v / max(float(np.linalg.norm(v)), 1e-12)
-
-
-def _at(P: Array, arc: Array, s: float) -> Array:
-    return np.array([np.interp(s, arc, P[:, d]) for d in range(3)])
 
 
 def _fit(q: Array, c: Array, r: float, steps: int = 4) -> Array:
@@ -188,22 +185,22 @@ def _unzip_one(sk: Skeleton, c: int, points: Array, tree: cKDTree, tol: float) -
     rB = float(np.median(B.radii[after]))
     first = (arcC > 0) & (arcC <= 0.04)
     rC = float(np.median(C.radii[first])) if first.any() else float(C.radii[1])
-    tB = _unit(_at(B.points, arcB, sB) - _at(B.points, arcB, max(sB - 0.03, 0.0)))
-    dC = _unit(_at(C.points, arcC, min(arcC[1] + 0.03, arcC[-1])) - C.points[1])
+    tB = _unit(point_at(B.points, arcB, sB) - point_at(B.points, arcB, max(sB - 0.03, 0.0)))
+    dC = _unit(point_at(C.points, arcC, min(arcC[1] + 0.03, arcC[-1])) - C.points[1])
     if math.degrees(math.acos(float(np.clip(dC @ tB, -1, 1)))) > MAX_ANGLE:
         return False
     step = max(2.0 * tol, 0.004)
     reach = 2.0 * (rB + rC) + 2 * tol + 0.005
     # which side the child lies on: from the parent's axis past the fork towards the child's
-    side = C.points[1] - _at(B.points, arcB, min(sB + 0.01, arcB[-1]))
+    side = C.points[1] - point_at(B.points, arcB, min(sB + 0.01, arcB[-1]))
     found: list[tuple[float, Array, Array]] = []
     cB3 = cC3 = np.zeros(3)
     misses = 0
     s = sB
     while s > 0.01 and sB - s <= MAX_BACK:
-        o = _at(B.points, arcB, s)
-        t = _unit(_at(B.points, arcB, min(s + 0.01, arcB[-1]))
-                  - _at(B.points, arcB, max(s - 0.01, 0.0)))  # fmt: skip
+        o = point_at(B.points, arcB, s)
+        t = _unit(point_at(B.points, arcB, min(s + 0.01, arcB[-1]))
+                  - point_at(B.points, arcB, max(s - 0.01, 0.0)))  # fmt: skip
         u = _unit(np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0]))
         v = np.cross(t, u)
         mid = (cB3 + cC3) / 2 if found else o
@@ -270,13 +267,13 @@ def _apply(sk: Skeleton, c: int, found: list[tuple[float, Array, Array]], rB: fl
     arcB = arc_length(B.points)
     s_hi = found[0][0]
     head = found[0][2]
-    d = _unit(_at(B.points, arcB, min(s_hi + 0.01, arcB[-1]))
-              - _at(B.points, arcB, max(s_hi - 0.01, 0.0)))  # fmt: skip
+    d = _unit(point_at(B.points, arcB, min(s_hi + 0.01, arcB[-1]))
+              - point_at(B.points, arcB, max(s_hi - 0.01, 0.0)))  # fmt: skip
     past = [i for i in range(1, len(C.points)) if (C.points[i] - head) @ d > 1e-4]
     if not past:
         return False
     s_fork = max(found[-1][0] - step, 0.0)
-    fork = _at(B.points, arcB, s_fork)
+    fork = point_at(B.points, arcB, s_fork)
     keep_lo = arcB < s_fork - 1e-6
     keep_hi = arcB > s_hi + 1e-6
     fb = [f[1] for f in reversed(found)]

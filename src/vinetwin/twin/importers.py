@@ -35,6 +35,7 @@ from vinetwin.twin.skeleton import (
     BranchKind,
     CutCandidate,
     Skeleton,
+    ancestors,
     arc_length,
     nearest_on_polyline,
 )
@@ -408,15 +409,6 @@ def _is_sphere(row: tuple[float, ...]) -> bool:
 CANDIDATE_OFFSET = 0.03
 
 
-def _ancestors(sk: Skeleton, k: int) -> set[int]:
-    """Branch `k` and the branches it hangs from."""
-    out: set[int] = set()
-    while k >= 0 and k not in out:
-        out.add(k)
-        k = sk.branches[k].parent
-    return out
-
-
 def _cylinder_candidates(sk: Skeleton) -> None:
     """Parents and the candidates of `read_cylinders`' rule. A branch's parent is the branch
     whose axis passes nearest its first point (within 2 radii), among the branches before it
@@ -432,7 +424,7 @@ def _cylinder_candidates(sk: Skeleton) -> None:
         best = int(np.argmin(d[:idx])) if idx else -1
         if best < 0 or d[best] > tol:
             best = next((int(k) for k in np.argsort(d) if d[k] <= tol
-                         and idx not in _ancestors(sk, int(k))), -1)  # fmt: skip
+                         and idx not in ancestors(sk, int(k))), -1)  # fmt: skip
         if best < 0:
             continue
         b.parent = best

@@ -150,6 +150,12 @@ def arc_length(points: Array) -> Array:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
 
 
+def point_at(P: Array, arc: Array, s: Array | float) -> Array:
+    """The points of the polyline `P` (arc lengths `arc`) at arc positions `s`: (3,) for one,
+    (N, 3) for N."""
+    return np.stack([np.interp(s, arc, P[:, d]) for d in range(3)], -1)
+
+
 def resample(P: Array, R: Array, step: float = 0.002) -> tuple[Array, Array]:
     """A polyline and its radii at evenly spaced points at most `step` apart (ends kept)."""
     a = arc_length(P)
@@ -180,6 +186,23 @@ FIRST_NODE = 0.0175
 
 # ---------------------------------------------------------------------------- tips and paths
 _EPS = 1e-3  # m: a child starting this close to its parent's end continues it
+
+
+def ancestors(sk: Skeleton, k: int) -> set[int]:
+    """Branch `k` and the branches it hangs from."""
+    out: set[int] = set()
+    while k >= 0 and k not in out:
+        out.add(k)
+        k = sk.branches[k].parent
+    return out
+
+
+def children_on_axes(sk: Skeleton, parents: set[int] | None = None) -> None:
+    """Each child (of `parents` only, when given) starts on its parent's axis, at the point
+    nearest its second point: after the parent's axis moved (in place)."""
+    for b in sk.branches:
+        if b.parent >= 0 and len(b.points) >= 2 and (parents is None or b.parent in parents):
+            b.points[0] = nearest_on_polyline(b.points[1], sk.branches[b.parent].points)[2]
 
 
 def arc_of_nearest(p: Array, pts: Array, arc: Array) -> float:
@@ -231,7 +254,7 @@ def tip_paths(sk: Skeleton, back_to: str = "fork") -> list[tuple[Array, Array, f
             keep = (s > lo) & (s <= pos + 1e-12)
             pts = sk.branches[cur].points
             rad = sk.branches[cur].radii
-            p_lo = np.array([np.interp(lo, s, pts[:, d]) for d in range(3)])
+            p_lo = point_at(pts, s, lo)
             pieces_p.insert(0, np.vstack([p_lo, pts[keep]]))
             pieces_r.insert(0, np.concatenate([[np.interp(lo, s, rad)], rad[keep]]))
             if forks:
@@ -249,7 +272,7 @@ def tip_paths(sk: Skeleton, back_to: str = "fork") -> list[tuple[Array, Array, f
             if stop:  # the path starts where it leaves its parent, on the parent's axis
                 pp = sk.branches[par].points
                 fork_r = float(np.interp(ppos, arcs[par], sk.branches[par].radii))
-                axis_pt = np.array([np.interp(ppos, arcs[par], pp[:, d]) for d in range(3)])
+                axis_pt = point_at(pp, arcs[par], ppos)
                 pieces_p.insert(0, axis_pt[None, :])
                 pieces_r.insert(0, np.array([fork_r]))
                 break
