@@ -76,6 +76,26 @@ def test_a_cordons_end_on_the_chain_of_its_last_cane_is_split_where_it_turns(tur
     assert np.linalg.norm(cut.point - sk.branches[3].points[k]) < 3e-3, (cut.point, want)
 
 
+def test_a_cane_lying_along_a_cordons_end_is_split_where_it_rises_past_its_junction() -> None:
+    """A cane lying 20 cm along a cordon's end (10 mm; the cane 8 mm) and then rising 60
+    degrees, one chain of the skeleton that starts on the cordon's axis and steps 1 cm down to
+    its own within its first centimetre (generated vine seed 21): that step is its junction,
+    not its turn, so the chain is split where it rises and the rising part is a cane, not
+    cordon wood 1 cm off the true cordon for every cane cut measured from it."""
+    trunk = seg([0, 0, 0], [0, 0, 0.7], 0.015, "trunk")
+    cordon = seg([0, 0, 0.7], [0.35, 0, 0.7], 0.010, parent=0)
+    step = np.array([[0.35, 0, 0.7], [0.352, 0, 0.696], [0.354, 0, 0.692], [0.356, 0, 0.69]])
+    level = seg([0.356, 0, 0.69], [0.55, 0, 0.69], 0.008).points[1:]
+    rise = seg([0.55, 0, 0.69], [0.61, 0, 0.794], 0.006).points[1:]
+    P = np.vstack([step, level, rise])
+    R = np.r_[np.full(len(step) + len(level), 0.008), np.full(len(rise), 0.006)]
+    sk = Skeleton([trunk, cordon, Branch(P, R, "cane", 1)])
+    assert kinds_of(sk) == ["trunk", "cordon", "cordon", "cane"]
+    end = sk.branches[2].points[-1]
+    assert end[2] < 0.7 and 0.53 < end[0] < 0.56, end
+    assert sk.branches[3].parent == 2 and sk.branches[3].points[-1][2] > 0.79
+
+
 @pytest.mark.parametrize(("heading", "kind"), [((1.0, 0.0), "cordon"), ((0.0, 1.0), "cane")])
 def test_a_cordons_last_centimetres_past_its_last_spur_carry_it_on(
     heading: tuple[float, float], kind: str

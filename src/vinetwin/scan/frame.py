@@ -173,11 +173,20 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
     _parents_first(sk)  # a split appends a branch its children may come before
 
 
+#: A branch's first metres (m) leave its parent's axis, down or up through the parent's wood,
+#: whatever way the branch then runs: no turn is looked for there (a cane lying along a
+#: generated vine's cordon for 20 cm and then rising, taken for the cordon's continuation,
+#: dropped 1 cm from the cordon's axis in its first 2 cm, and that step was taken for its turn).
+JUNCTION = 0.03
+
+
 def _turn_at(P: Array, s: Array, up: Array, before: float) -> int | None:
     """The index where a branch first turns up or down by more than 40 degrees (its direction
     over 3 points either side), when that is at least `before` (m) from its start and 5 cm
     before its end; else None. (Turning sideways is no end: the GDC vine's right cordon curls.)"""
     for k in range(1, len(P) - 1):
+        if s[k] < JUNCTION:
+            continue
         t = P[min(k + 3, len(P) - 1)] - P[max(k - 3, 0)]
         t /= max(np.linalg.norm(t), 1e-9)
         if abs(t @ up) > ARM_RISE:
