@@ -170,21 +170,26 @@ def test_a_cordons_tail_hanging_from_a_cane_listed_before_it_is_carried_on() -> 
     assert all(b.parent < i for i, b in enumerate(sk.branches)), [b.parent for b in sk.branches]
 
 
-def test_a_cordons_axis_pulled_up_into_a_spur_is_straightened() -> None:
-    """A level 50 cm cordon (9 mm) whose skeleton rises 18 mm into a spur over 4 cm, with a cane
-    going up from there (generated vine seed 9): `straighten_bumps` puts that stretch back on
-    the cordon's line, the cane starts there, and its cut stands the rule's offset off the
-    cordon's true surface (it came 1.5-2 cm high). A cordon bending with a 25 cm radius is left
-    as it is, and so is an arm turning 60 degrees at a corner (the VSP vine's, 15 mm off the
-    chord across it: a corner, not a detour)."""
+@pytest.mark.parametrize("height", [0.018, 0.007])
+def test_a_cordons_axis_pulled_up_into_a_spur_is_straightened(height: float) -> None:
+    """A level 50 cm cordon (9 mm) whose skeleton rises 18 mm (or 6 mm: two thirds of its
+    radius on the nodes, generated vines of seeds 7, 12 and 21) into a spur over 4 cm, its radius there 14 mm,
+    with a cane going up from there (generated vine seed 9): `straighten_bumps` puts that
+    stretch back on the cordon's line with the cordon's radius, the cane starts there, and its
+    cut stands the rule's offset off the cordon's true surface (it came 1.5-2 cm high). A
+    cordon bending with a 25 cm radius is left as it is, and so is an arm turning 60 degrees
+    at a corner (the VSP vine's, 15 mm off the chord across it: a corner, not a detour)."""
     x = np.linspace(0, 0.5, 51)
-    z = 0.7 + 0.018 * np.clip(1 - np.abs(x - 0.255) / 0.02, 0, 1)
-    cordon = Branch(np.c_[x, np.zeros_like(x), z], np.full(51, 0.009), "cordon", 0)
+    bump = np.clip(1 - np.abs(x - 0.255) / 0.02, 0, 1)
+    z = 0.7 + height * bump
+    r = np.where(bump > 0.5, 0.014, 0.009)
+    cordon = Branch(np.c_[x, np.zeros_like(x), z], r, "cordon", 0)
     trunk = seg([0, 0, 0], [0, 0, 0.7], 0.018, "trunk")
-    cane = seg([0.255, 0, 0.718], [0.26, 0, 1.3], 0.004, parent=1)
+    cane = seg([0.255, 0, 0.7 + height], [0.26, 0, 1.3], 0.004, parent=1)
     sk = Skeleton([trunk, cordon, cane])
     assert straighten_bumps(sk) > 0
     assert np.abs(sk.branches[1].points[:, 2] - 0.7).max() < 2e-3
+    assert np.abs(sk.branches[1].radii - 0.009).max() < 1e-3
     assert abs(sk.branches[2].points[0, 2] - 0.7) < 2e-3
     (cut,) = cut_candidates(sk, "vine", 0.07)
     assert abs(cut.point[2] - (0.7 + 0.009 + FIRST_NODE + 1.3 * 0.07)) < 3e-3, cut.point
