@@ -374,7 +374,15 @@ def test_the_cut_rule_on_a_vine_built_to_know_the_answer() -> None:
     for c, x in zip(cands, (0.1, 0.3, 0.5), strict=True):
         assert np.allclose(c.point, [x, 0, want], atol=1e-9)
         assert np.allclose(c.cane_axis, [0, 0, 1])
-    assert cut_candidates(sk, "vine", 0.35) == []  # canes too short for 2 buds of 35 cm
+    assert cut_candidates(sk, "vine", 0.37) == []  # canes too short for 2 buds of 37 cm
+    # a cane whose skeleton ends 1 cm past its cut (where it met another cane) is cut there;
+    # one ending 3 mm past is not (`PAST_VINE`: the shears' jaw)
+    for x, past in ((0.2, 0.01), (0.4, 0.003)):
+        top = want + past
+        sk.branches.append(Branch(np.hstack([x + 0 * line, 0 * line, 0.7 + (top - 0.7) * line]),
+                                  np.full(50, 0.004), "cane", 1))  # fmt: skip
+    xs = sorted(round(float(c.point[0]), 3) for c in cut_candidates(sk, "vine", 0.07))
+    assert xs == [0.1, 0.2, 0.3, 0.5], xs
 
 
 def test_the_cut_rule_does_not_depend_on_where_a_skeleton_forks() -> None:
