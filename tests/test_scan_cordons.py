@@ -204,3 +204,21 @@ def test_a_cordons_axis_pulled_up_into_a_spur_is_straightened(height: float) -> 
                      [0.12, 0, 0.7] + np.linspace(0, 0.1, 21)[1:, None] * d])  # fmt: skip
     corner = Skeleton([trunk, Branch(arm, np.full(len(arm), 0.012), "cordon", 0)])
     assert straighten_bumps(corner) == 0
+
+
+def test_a_detour_at_the_joint_of_two_cordon_pieces_is_straightened() -> None:
+    """A level cordon (9 mm) that the skeleton split in two where canes leave it, the joint
+    lifted 8 mm into their bases (generated vines of seeds 7, 12 and 17): straightened along
+    the chain of pieces as along one branch, and the cane there starts on the cordon's line."""
+    x = np.linspace(0, 0.5, 51)
+    z = 0.7 + 0.008 * np.clip(1 - np.abs(x - 0.3) / 0.02, 0, 1)
+    P = np.c_[x, np.zeros_like(x), z]
+    trunk = seg([0, 0, 0], [0, 0, 0.7], 0.018, "trunk")
+    first = Branch(P[:31], np.full(31, 0.009), "cordon", 0)
+    second = Branch(P[30:], np.full(21, 0.009), "cordon", 1)
+    cane = seg([0.3, 0, 0.708], [0.3, 0, 1.2], 0.004, parent=1)
+    sk = Skeleton([trunk, first, second, cane])
+    assert straighten_bumps(sk) > 0
+    for b in sk.branches[1:3]:
+        assert np.abs(b.points[:, 2] - 0.7).max() < 1e-3, b.points[:, 2]
+    assert abs(sk.branches[3].points[0, 2] - 0.7) < 1e-3

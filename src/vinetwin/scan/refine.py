@@ -202,7 +202,9 @@ def _straighten(P: Array, r: Array) -> tuple[Array, Array, int]:
 
 
 def straighten_bumps(sk: Skeleton) -> int:
-    """Takes the detours out of the axes of a vine's cordons (in place): a node standing more
+    """Takes the detours out of the axes of a vine's cordons (in place), each cordon taken as
+    the chain of its pieces (`_cordon_chains`: a detour at a joint is seen whole): a node
+    standing more
     than `BUMP_OFF` of the branch's radius off the chord between its points `BUMP_SPAN` before
     and after it, where the axis heads the same way before and after (`BUMP_HEADING`: a
     detour, not a corner), is a detour, and the run of such nodes, with `2/3 BUMP_SPAN` more either side
@@ -221,15 +223,59 @@ def straighten_bumps(sk: Skeleton) -> int:
     left, for arms do turn sharply (the VSP vine's turns 60 degrees at a digitised node)."""
     moved = 0
     changed = set()
-    for i, b in enumerate(sk.branches):
-        if b.kind != "cordon" or len(b.points) < 5:
+    for chain in _cordon_chains(sk):
+        P = np.vstack([sk.branches[i].points for i in chain])
+        R = np.concatenate([sk.branches[i].radii for i in chain])
+        if len(P) < 5:
             continue
+        n_chain = 0
         for _ in range(BUMP_PASSES):  # a wide detour leans the chords of its first pass
-            P, R, n = _straighten(b.points, b.radii)
+            P, R, n = _straighten(P, R)
             if not n:
                 break
-            b.points, b.radii = P, R
-            moved += n
-            changed.add(i)
+            n_chain += n
+        if not n_chain:
+            continue
+        moved += n_chain
+        at = 0
+        for i in chain:  # back into its pieces
+            b = sk.branches[i]
+            k = len(b.points)
+            if not (
+                np.array_equal(b.points, P[at : at + k]) and np.array_equal(b.radii, R[at : at + k])
+            ):
+                b.points, b.radii = P[at : at + k].copy(), R[at : at + k].copy()
+                changed.add(i)
+            at += k
     children_on_axes(sk, changed)
     return moved
+
+
+#: Metres: a cordon piece starting this near another's end carries it on (one chain).
+CHAIN_JOIN = 0.02
+
+
+def _cordon_chains(sk: Skeleton) -> list[list[int]]:
+    """The cordons as chains of pieces, each piece carrying the one before on from its end
+    (the skeleton splits a cordon where canes leave it, and `scan.frame` hangs its pieces one
+    from another), so that a detour at a joint is seen whole."""
+
+    def carries(c: int, j: int) -> bool:
+        b, p = sk.branches[j], sk.branches[c]
+        return (b.kind == "cordon" and b.parent == c
+                and float(np.linalg.norm(b.points[0] - p.points[-1])) <= CHAIN_JOIN)  # fmt: skip
+
+    kids: list[list[int]] = [[] for _ in sk.branches]
+    for j, b in enumerate(sk.branches):
+        if b.parent >= 0:
+            kids[b.parent].append(j)
+    chains = []
+    for i, b in enumerate(sk.branches):
+        if b.kind != "cordon" or (b.parent >= 0 and carries(b.parent, i)
+                                  and sk.branches[b.parent].kind == "cordon"):  # fmt: skip
+            continue
+        chain = [i]
+        while nxt := [j for j in kids[chain[-1]] if carries(chain[-1], j)]:
+            chain.append(nxt[0])
+        chains.append(chain)
+    return chains
