@@ -204,14 +204,14 @@ def _straighten(P: Array, r: Array) -> tuple[Array, Array, int]:
 def straighten_bumps(sk: Skeleton) -> int:
     """Takes the detours out of the axes of a vine's cordons (in place), each cordon taken as
     the chain of its pieces (`_cordon_chains`: a detour at a joint is seen whole): a node
-    standing more
-    than `BUMP_OFF` of the branch's radius off the chord between its points `BUMP_SPAN` before
-    and after it, where the axis heads the same way before and after (`BUMP_HEADING`: a
-    detour, not a corner), is a detour, and the run of such nodes, with `2/3 BUMP_SPAN` more either side
-    (runs overlapping so joined), is put on the straight line between the ends of that
-    stretch, its radii on the line between theirs. Children starting there start on the new
-    axis. Returns the nodes moved. (The trunk is left alone: straightening it too
-    moved the head-trained VSP vine's arm and lost a cane on a generated vine.)
+    standing more than `BUMP_OFF` of the branch's radius off the chord between its points
+    `BUMP_SPAN` before and after it, where the axis heads the same way before and after
+    (`BUMP_HEADING`: a detour, not a corner), is a detour, and the run of such nodes, with
+    `2/3 BUMP_SPAN` more either side (runs overlapping so joined), is put on the straight line
+    between the ends of that stretch, its radii on the line between theirs. Children starting
+    there start on the new axis. Returns the nodes moved. (The trunk is left alone:
+    straightening it too moved the head-trained VSP vine's arm and lost a cane on a generated
+    vine.)
 
     Where a spur stands up from a cordon, a level set of the geodesic distance holds the spur's
     base with the cordon's points: its centre rises into the spur, and `refine_axes` keeps it
