@@ -81,7 +81,8 @@ def test_a_cane_lying_along_a_cordons_end_is_split_where_it_rises_past_its_junct
     degrees, one chain of the skeleton that starts on the cordon's axis and steps 1 cm down to
     its own within its first centimetre (generated vine seed 21): that step is its junction,
     not its turn, so the chain is split where it rises and the rising part is a cane, not
-    cordon wood 1 cm off the true cordon for every cane cut measured from it."""
+    cordon wood 1 cm off the true cordon for every cane cut measured from it. A cane rising
+    from the cordon's end through a curved base stays a cane."""
     trunk = seg([0, 0, 0], [0, 0, 0.7], 0.015, "trunk")
     cordon = seg([0, 0, 0.7], [0.35, 0, 0.7], 0.010, parent=0)
     step = np.array([[0.35, 0, 0.7], [0.352, 0, 0.696], [0.354, 0, 0.692], [0.356, 0, 0.69]])
@@ -94,6 +95,15 @@ def test_a_cane_lying_along_a_cordons_end_is_split_where_it_rises_past_its_junct
     end = sk.branches[2].points[-1]
     assert end[2] < 0.7 and 0.53 < end[0] < 0.56, end
     assert sk.branches[3].parent == 2 and sk.branches[3].points[-1][2] > 0.79
+    # a cane rising from the cordon's end through a curved base (a 2.5 cm step up, 5 cm flat,
+    # then steep; seed 21) rises from its start: no piece of it is taken for cordon
+    step = np.array([[0.35, 0, 0.7], [0.355, 0, 0.712], [0.36, 0, 0.725]])
+    flat = seg([0.36, 0, 0.725], [0.41, 0, 0.727], 0.008).points[1:]
+    up = seg([0.41, 0, 0.727], [0.45, 0, 1.2], 0.006).points[1:]
+    P = np.vstack([step, flat, up])
+    R = np.r_[np.full(len(step) + len(flat), 0.008), np.full(len(up), 0.006)]
+    sk = Skeleton([trunk, cordon, Branch(P, R, "cane", 1)])
+    assert kinds_of(sk) == ["trunk", "cordon", "cane"]
 
 
 @pytest.mark.parametrize(("heading", "kind"), [((1.0, 0.0), "cordon"), ((0.0, 1.0), "cane")])

@@ -23,7 +23,7 @@ from vinetwin.scan.candidates import (
     level_and_thick,
     sister_cordons,
 )
-from vinetwin.twin.skeleton import Branch, Skeleton, ancestors, arc_length
+from vinetwin.twin.skeleton import Branch, Skeleton, ancestors, arc_length, point_at
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -178,19 +178,29 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
 #: generated vine's cordon for 20 cm and then rising, taken for the cordon's continuation,
 #: dropped 1 cm from the cordon's axis in its first 2 cm, and that step was taken for its turn).
 JUNCTION = 0.03
+#: ... when the branch runs level past it (its chord over the next `JUNCTION_RUN` m within 20
+#: degrees, sine `JUNCTION_LEVEL`): a cane rising from its start through a curved base (a
+#: 2.5 cm step up, 5 cm flat, then steep; a generated vine of seed 21) rises from its start.
+JUNCTION_LEVEL = 0.34
+JUNCTION_RUN = 0.10
 
 
 def _turn_at(P: Array, s: Array, up: Array, before: float) -> int | None:
     """The index where a branch first turns up or down by more than 40 degrees (its direction
     over 3 points either side), when that is at least `before` (m) from its start and 5 cm
-    before its end; else None. (Turning sideways is no end: the GDC vine's right cordon curls.)"""
+    before its end; else None. (Turning sideways is no end: the GDC vine's right cordon curls.)
+    A turn within `JUNCTION` of its start is its junction's step when it runs level past it."""
     for k in range(1, len(P) - 1):
-        if s[k] < JUNCTION:
-            continue
         t = P[min(k + 3, len(P) - 1)] - P[max(k - 3, 0)]
         t /= max(np.linalg.norm(t), 1e-9)
-        if abs(t @ up) > ARM_RISE:
-            return k if s[k] >= before and s[-1] - s[k] >= 0.05 else None
+        if abs(t @ up) <= ARM_RISE:
+            continue
+        if s[k] < JUNCTION:
+            a, b = point_at(P, s, JUNCTION), point_at(P, s, min(JUNCTION + JUNCTION_RUN, s[-1]))
+            d = b - a
+            if abs(float(d @ up)) <= JUNCTION_LEVEL * float(np.linalg.norm(d)) + 1e-12:
+                continue  # the step off its parent's axis
+        return k if s[k] >= before and s[-1] - s[k] >= 0.05 else None
     return None
 
 
