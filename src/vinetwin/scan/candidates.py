@@ -50,10 +50,11 @@ PAST_TREE = 0.02
 PAST_VINE = 0.005
 """A vine's cane gets a cut when its path reaches at least this (m) past where the cut sits (the
 shears' jaw). No true cane ends within 2 cm past its two-bud cut (the true skeletons of the
-generated and hydroshoot vines measured give the same candidates at 5 mm as at 2 cm), while a scan's skeleton ends a cane
-where it touches another one and hangs the rest on that one: its path then stops a few
-millimetres past the cut. At 2 cm those canes got no cut (the first scans of the 12 tuned
-vines and `dense@6-21`: 8 more of 799 true cuts found at 5 mm, 2 more of ours not matching)."""
+generated and hydroshoot vines measured give the same candidates at 5 mm as at 2 cm), while a
+scan's skeleton ends a cane where it touches another one and hangs the rest on that one: its
+path then stops a few millimetres past the cut. At 2 cm those canes got no cut (the first
+scans of the 12 tuned vines and `dense@6-21`: 8 more of 799 true cuts found at 5 mm, 2 more of
+ours not matching)."""
 
 
 def cut_candidates(sk: Skeleton, plant: PlantKind, internode: float) -> list[CutCandidate]:

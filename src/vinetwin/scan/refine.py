@@ -269,13 +269,15 @@ def _cordon_chains(sk: Skeleton) -> list[list[int]]:
     for j, b in enumerate(sk.branches):
         if b.parent >= 0:
             kids[b.parent].append(j)
+    cordons = [i for i, b in enumerate(sk.branches) if b.kind == "cordon"]
+    nxt = {c: on[0] for c in cordons if (on := [j for j in kids[c] if carries(c, j)])}
+    followed = set(nxt.values())  # a second piece from one end starts a chain of its own
     chains = []
-    for i, b in enumerate(sk.branches):
-        if b.kind != "cordon" or (b.parent >= 0 and carries(b.parent, i)
-                                  and sk.branches[b.parent].kind == "cordon"):  # fmt: skip
+    for i in cordons:
+        if i in followed:
             continue
         chain = [i]
-        while nxt := [j for j in kids[chain[-1]] if carries(chain[-1], j)]:
-            chain.append(nxt[0])
+        while chain[-1] in nxt:
+            chain.append(nxt[chain[-1]])
         chains.append(chain)
     return chains
