@@ -183,8 +183,8 @@ def _straighten(P: Array, r: Array) -> tuple[Array, Array, int]:
     moved = 0
     spans: list[list[float]] = []  # each run of detour nodes widened, overlapping ones joined
     for run in np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1):
-        lo = max(s[run[0]] - 2 * BUMP_SPAN / 3, 0.0)
-        hi = min(s[run[-1]] + 2 * BUMP_SPAN / 3, s[-1])
+        lo = max(float(s[run[0]]) - 2 * BUMP_SPAN / 3, 0.0)
+        hi = min(float(s[run[-1]]) + 2 * BUMP_SPAN / 3, float(s[-1]))
         if spans and lo <= spans[-1][1]:
             spans[-1][1] = hi
         else:
