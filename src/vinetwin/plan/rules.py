@@ -40,6 +40,7 @@ from vinetwin.twin.skeleton import (
     Skeleton,
     arc_length,
     nearest_on_polyline,
+    point_at,
     resample,
     standoff,
     tip_paths,
@@ -103,7 +104,7 @@ class Shoot:
     def at(self, s: float) -> tuple[Array, Array, float]:
         """Point, unit axis and radius at arc position s."""
         P, a = self.points, self.arc
-        p = np.array([np.interp(s, a, P[:, d]) for d in range(3)])
+        p = point_at(P, a, s)
         lo = int(np.clip(np.searchsorted(a, s - AXIS_HALF), 0, len(P) - 2))
         hi = int(np.clip(np.searchsorted(a, s + AXIS_HALF), lo + 1, len(P) - 1))
         axis = P[hi] - P[lo]

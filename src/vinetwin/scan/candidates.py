@@ -36,6 +36,7 @@ from vinetwin.twin.skeleton import (
     CutCandidate,
     Skeleton,
     arc_length,
+    children,
     resample,
     standoff,
     tip_paths,
@@ -200,13 +201,10 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
     vine's arm: thick, level, carrying others, leaving the trunk's head from whichever branch
     the skeleton's chain gave it), short branches carrying others are spurs, the rest canes; for
     a tree the root is the trunk, the rest branches."""
-    children: list[list[int]] = [[] for _ in sk.branches]
-    for i, b in enumerate(sk.branches):
-        if b.parent >= 0:
-            children[b.parent].append(i)
+    kids = children(sk)
     order = [i for i, b in enumerate(sk.branches) if b.parent < 0]
     for i in order:  # parents before children, however the list is ordered
-        order.extend(children[i])
+        order.extend(kids[i])
     r_trunk = float(np.median(sk.branches[order[0]].radii)) if order else 0.0
     head = sk.branches[order[0]].points[-1] if order else np.zeros(3)
     sisters = sister_cordons(sk, up, CORDON_RADIUS * r_trunk) if plant == "vine" else set()
@@ -220,7 +218,7 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
         else:
             parent_kind = sk.branches[b.parent].kind
             thick = float(np.median(b.radii)) >= CORDON_RADIUS * r_trunk or i in sisters
-            arm = bool(children[i]) and arm_shape(b, up, [head])
+            arm = bool(kids[i]) and arm_shape(b, up, [head])
             cordon = parent_kind in ("trunk", "cordon") and level_and_thick(b, up)
             pb = sk.branches[b.parent]  # a cordon's continuation from its end, tapering
             tapers = (parent_kind == "cordon" and float(np.linalg.norm(b.points[0] - pb.points[-1])) <= CONTINUE_WITHIN
@@ -230,7 +228,7 @@ def label_kinds(sk: Skeleton, up: Array, plant: PlantKind) -> None:
             # an arm: wherever hung
             if ((cordon or arm) and thick) or (cordon and tapers) or onward:
                 kind = "cordon"
-            elif children[i] and b.length < 0.12:
+            elif kids[i] and b.length < 0.12:
                 kind = "spur"
             else:
                 kind = "cane"

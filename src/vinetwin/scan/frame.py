@@ -23,7 +23,14 @@ from vinetwin.scan.candidates import (
     level_and_thick,
     sister_cordons,
 )
-from vinetwin.twin.skeleton import Branch, Skeleton, ancestors, arc_length, point_at
+from vinetwin.twin.skeleton import (
+    Branch,
+    Skeleton,
+    ancestors,
+    arc_length,
+    children,
+    point_at,
+)
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -173,14 +180,14 @@ def split_cordons(sk: Skeleton, up: Array) -> None:
     _parents_first(sk)  # a split appends a branch its children may come before
 
 
-#: A branch's first metres (m) leave its parent's axis, down or up through the parent's wood,
-#: whatever way the branch then runs: no turn is looked for there (a cane lying along a
+#: A branch's first metres (m) leave its parent's axis, down or up through the parent's wood:
+#: a steep step there is no turn when the branch runs level past it (a cane lying along a
 #: generated vine's cordon for 20 cm and then rising, taken for the cordon's continuation,
 #: dropped 1 cm from the cordon's axis in its first 2 cm, and that step was taken for its turn).
 JUNCTION = 0.03
-#: ... when the branch runs level past it (its chord over the next `JUNCTION_RUN` m within 20
-#: degrees, sine `JUNCTION_LEVEL`): a cane rising from its start through a curved base (a
-#: 2.5 cm step up, 5 cm flat, then steep; a generated vine of seed 21) rises from its start.
+#: Level past the junction: the chord over the next `JUNCTION_RUN` (m) within 20 degrees of
+#: horizontal (sine `JUNCTION_LEVEL`). A cane rising from its start through a curved base (a
+#: 2.5 cm step up, 5 cm flat, then steep; a generated vine of seed 21) is not level there.
 JUNCTION_LEVEL = 0.34
 JUNCTION_RUN = 0.10
 
@@ -311,11 +318,8 @@ def _parents_first(sk: Skeleton) -> None:
     n = len(sk.branches)
     if all(b.parent < i for i, b in enumerate(sk.branches)):
         return
-    kids: list[list[int]] = [[] for _ in sk.branches]
+    kids = children(sk)
     ready = [i for i, b in enumerate(sk.branches) if b.parent < 0]
-    for i, b in enumerate(sk.branches):
-        if b.parent >= 0:
-            kids[b.parent].append(i)
     heapq.heapify(ready)
     order: list[int] = []
     while ready:

@@ -32,6 +32,7 @@ from vinetwin.frames import Array
 from vinetwin.twin.skeleton import (
     Skeleton,
     arc_length,
+    children,
     children_on_axes,
     point_at,
     resample,
@@ -265,10 +266,7 @@ def _cordon_chains(sk: Skeleton) -> list[list[int]]:
         return (b.kind == "cordon" and b.parent == c
                 and float(np.linalg.norm(b.points[0] - p.points[-1])) <= CHAIN_JOIN)  # fmt: skip
 
-    kids: list[list[int]] = [[] for _ in sk.branches]
-    for j, b in enumerate(sk.branches):
-        if b.parent >= 0:
-            kids[b.parent].append(j)
+    kids = children(sk)
     cordons = [i for i, b in enumerate(sk.branches) if b.kind == "cordon"]
     nxt = {c: on[0] for c in cordons if (on := [j for j in kids[c] if carries(c, j)])}
     followed = set(nxt.values())  # a second piece from one end starts a chain of its own

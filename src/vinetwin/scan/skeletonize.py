@@ -36,7 +36,7 @@ from vinetwin.frames import Array
 from vinetwin.scan.config import PlantKind, SkeletonConfig
 from vinetwin.scan.refine import circle_fit, median5, refine_axes
 from vinetwin.scan.unzip import unzip_forks
-from vinetwin.twin.skeleton import Branch, Skeleton, nearest_on_polyline
+from vinetwin.twin.skeleton import Branch, Skeleton, children, nearest_on_polyline
 
 
 @dataclass
@@ -393,10 +393,7 @@ def merge_slivers(sk: Skeleton) -> Skeleton:
     changed = True
     while changed:
         changed = False
-        kids: list[list[int]] = [[] for _ in sk.branches]
-        for i, b in enumerate(sk.branches):
-            if b.parent >= 0:
-                kids[b.parent].append(i)
+        kids = children(sk)
         for i, b in enumerate(sk.branches):
             for c in kids[i]:
                 child = sk.branches[c]

@@ -161,7 +161,7 @@ def resample(P: Array, R: Array, step: float = 0.002) -> tuple[Array, Array]:
     a = arc_length(P)
     n = max(2, int(np.ceil(a[-1] / step)) + 1)
     t = np.linspace(0.0, a[-1], n)
-    return np.column_stack([np.interp(t, a, P[:, d]) for d in range(3)]), np.interp(t, a, R)
+    return point_at(P, a, t), np.interp(t, a, R)
 
 
 def nearest_on_polyline(p: Array, pts: Array) -> tuple[int, float, Array]:
@@ -186,6 +186,15 @@ FIRST_NODE = 0.0175
 
 # ---------------------------------------------------------------------------- tips and paths
 _EPS = 1e-3  # m: a child starting this close to its parent's end continues it
+
+
+def children(sk: Skeleton) -> list[list[int]]:
+    """For each branch, the indices of the branches hanging from it, in list order."""
+    out: list[list[int]] = [[] for _ in sk.branches]
+    for i, b in enumerate(sk.branches):
+        if b.parent >= 0:
+            out[b.parent].append(i)
+    return out
 
 
 def ancestors(sk: Skeleton, k: int) -> set[int]:
