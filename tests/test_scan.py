@@ -610,6 +610,35 @@ def test_touching_canes_are_parted_where_they_part(monkeypatch: pytest.MonkeyPat
     assert turned_branch(0)[0, 2] > 0.15
 
 
+def test_side_branches_leaving_a_limb_together_are_not_junction_noise() -> None:
+    """Three 9 cm side branches (radius 8 mm) leave a 1 cm limb at one point, as the Y-trellis
+    apple's stubs do. The fork's slice holds all their bases and is twice the limb's width:
+    judged by it, one or two of them were junction noise (seed 2 kept one); judged by the
+    slice below, each is found, its end within 3 cm of the truth's."""
+    from vinetwin.scan.config import SkeletonConfig
+    from vinetwin.scan.skeletonize import skeletonize
+    from vinetwin.twin.skeleton import Branch
+
+    def line(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return a + np.linspace(0, 1, 30)[:, None] * (b - a)
+
+    o, fork = np.zeros(3), np.array([0.0, 0.0, 0.15])
+    branches = [Branch(line(np.array([0, 0, -0.6]), o), np.full(30, 0.015), "branch"),
+                Branch(line(o, np.array([0, 0, 0.4])), np.full(30, 0.01), "branch", 0)]  # fmt: skip
+    tips = []
+    for a in np.radians([0.0, 120.0, 240.0]):
+        d = np.array([np.cos(a), np.sin(a), 1.0]) / np.sqrt(2.0)
+        tips.append(fork + 0.09 * d)
+        branches.append(Branch(line(fork, tips[-1]), np.full(30, 0.008), "branch", 1))
+    V, F = tube_mesh(Skeleton(branches), edge=0.003, caps="round")
+    for seed in range(3):
+        P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], seed)
+        sk = skeletonize(P, SkeletonConfig(), 0.004, np.array([0.0, 0.0, 1.0]), "tree").skeleton
+        ends = np.array([b.points[-1] for b in sk.branches])
+        miss = [np.linalg.norm(ends - t, axis=1).min() for t in tips]
+        assert max(miss) < 0.03, (seed, np.round(miss, 3))
+
+
 def test_an_unzipped_cane_keeps_its_whole_length() -> None:
     """Three slices' fitted centres of a child can zigzag (measured on `vsp_ww`'s scan at seed
     1: a 1.09 m cane cut to 2.5 cm, lost). The child keeps its path from where it passes the
