@@ -308,65 +308,55 @@ def stability(name: str, reps: int = 3) -> dict[str, Any]:
     return {"plant": name, "reps": reps, "rows": rows}
 
 
-#: Why a true cut has none of ours within 1 cm (`miss_classes`).
+#: Why a true cut has none of ours within 1 cm (`miss_classes`), judged where the true cut is.
 MISS_CLASSES = {
-    "spur_split": "the true spur's canes fall in two or more of our spurs",
-    "spur_merged": "our spur holds its canes and another spur's",
-    "choice": "our spur is the true one, but another of its canes is kept",
-    "position": "the same cane and action, more than 1 cm away (its parting or buds)",
-    "no_cane": "no cane of ours follows the cut's cane",
-    "other": "our cane gets no cut",
+    "displaced": "our cut on that cane, the same action, 1-2 cm away (where it parts, its buds)",
+    "displaced_far": "our cut on that cane, the same action, more than 2 cm away",
+    "choice": "our cane there gets the other action; our spur holds as many canes as the true one",
+    "spur_differs": "our cane there gets the other action; our spur holds more or fewer canes",
+    "no_cut": "our cane there gets no cut",
+    "no_axis": "no axis of ours within 6 mm of the cut (touching canes run as one axis, or lost)",
 }
 
 
 def miss_classes(ours: Any, truth: Any, cfg: RuleConfig) -> dict[str, int]:
     """For each true cut (the rule on `truth`) with none of ours (the rule on `ours`) within
-    1 cm: why (`MISS_CLASSES`), counted. Each true shoot is followed by our shoot whose last
-    10 cm lie nearest it (within 1 cm on average); the two skeletons in one frame."""
+    1 cm: why (`MISS_CLASSES`), counted, from what our skeleton has at the true cut: the shoots
+    whose axis passes within 6 mm of it and the cuts the rule gives them. The two skeletons in
+    one frame."""
     from scipy.spatial import cKDTree
 
     from vinetwin.plan.rules import analyse, propose_cuts
 
-    s_t, _ = analyse(truth, cfg)
-    s_o, _ = analyse(ours, cfg)
+    s_t, g_t = analyse(truth, cfg)
+    s_o, g_o = analyse(ours, cfg)
     p_t, p_o = propose_cuts(truth, cfg), propose_cuts(ours, cfg)
     pts_o = np.array([p.point for p in p_o]).reshape(-1, 3)
     trees = [cKDTree(s.points) for s in s_o]
+    by_label = {s.label: s for s in s_t}
 
-    def follower(s: Any) -> int | None:
-        tail = s.points[s.arc > s.arc[-1] - 0.10]
-        d = [float(np.mean(t.query(tail)[0])) for t in trees]
-        j = int(np.argmin(d)) if d else -1
-        return j if d and d[j] <= 0.01 else None
+    def n_canes(ss: list[Any], g: list[int]) -> int:
+        return sum(1 for i in g if ss[i].side_of < 0)
 
-    follow = {s.label: follower(s) for s in s_t}
-    members: dict[int, list[str]] = {}
-    for s in s_t:
-        members.setdefault(s.spur, []).append(s.label)
     out = dict.fromkeys(MISS_CLASSES, 0)
     for p in p_t:
         if len(pts_o) and float(np.min(np.linalg.norm(pts_o - p.point, axis=1))) <= 0.01:
             continue
-        st = next(s for s in s_t if s.label == p.label)
-        o = follow[p.label]
-        if o is None:
-            out["no_cane"] += 1
+        near = [j for j, t in enumerate(trees) if t.query(p.point)[0] <= 0.006]
+        if not near:
+            out["no_axis"] += 1
             continue
-        mates = [follow[lab] for lab in members[st.spur]]
-        spurs = {s_o[m].spur for m in mates if m is not None}
-        strangers = [i for i, s in enumerate(s_o)
-                     if s.spur in spurs and i not in mates and s.side_of < 0]  # fmt: skip
-        mine = [q for q in p_o if q.label == s_o[o].label]
-        if len(spurs) > 1:
-            out["spur_split"] += 1
-        elif strangers:
-            out["spur_merged"] += 1
-        elif not mine:
-            out["other"] += 1
-        elif mine[0].action != p.action:
-            out["choice"] += 1
+        labels = {s_o[j].label for j in near}
+        mine = [q for q in p_o if q.label in labels]
+        same = [float(np.linalg.norm(q.point - p.point)) for q in mine if q.action == p.action]
+        if same:
+            out["displaced" if min(same) <= 0.02 else "displaced_far"] += 1
+        elif mine:
+            n_t = n_canes(s_t, g_t[by_label[p.label].spur])
+            n_o = {n_canes(s_o, g_o[s_o[j].spur]) for j in near}
+            out["choice" if n_t in n_o else "spur_differs"] += 1
         else:
-            out["position"] += 1
+            out["no_cut"] += 1
     return out
 
 
