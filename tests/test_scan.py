@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -571,6 +572,12 @@ def test_an_arm_on_the_trunk_s_chain_ends_where_it_thins_before_it_turns_up() ->
     assert 0.10 <= sk.branches[1].points[-1, 0] <= 0.14, sk.branches[1].points[-1]
 
 
+def _line(a: Any, b: Any, n: int = 30) -> np.ndarray:
+    """n points evenly from a to b (a branch's axis for a test skeleton)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return a + np.linspace(0, 1, n)[:, None] * (b - a)
+
+
 def test_touching_canes_are_parted_where_they_part(monkeypatch: pytest.MonkeyPatch) -> None:
     """Two canes (radius 4 mm, 1 mm apart) leave a spur's top (on a 15 mm trunk) at 5.8 cm and
     run side by side to 17 cm, where one turns 35 degrees away: the level sets part them only there; unzipping
@@ -580,16 +587,13 @@ def test_touching_canes_are_parted_where_they_part(monkeypatch: pytest.MonkeyPat
     from vinetwin.scan.skeletonize import skeletonize
     from vinetwin.twin.skeleton import Branch, Skeleton
 
-    def line(a: list[float], b: list[float], n: int = 30) -> np.ndarray:
-        return np.asarray(a) + np.linspace(0, 1, n)[:, None] * (np.asarray(b) - np.asarray(a))
-
     top = [0.0, 0.0, 0.05]
-    trunk = Branch(line([0, 0, -0.3], [0, 0, 0]), np.full(30, 0.015), "trunk")
-    spur = Branch(line([0, 0, 0], top), np.full(30, 0.006), "spur", 0)
-    kept = np.vstack([top, line([-0.0045, 0, 0.058], [-0.0045, 0, 0.35])])
+    trunk = Branch(_line([0, 0, -0.3], [0, 0, 0]), np.full(30, 0.015), "trunk")
+    spur = Branch(_line([0, 0, 0], top), np.full(30, 0.006), "spur", 0)
+    kept = np.vstack([top, _line([-0.0045, 0, 0.058], [-0.0045, 0, 0.35])])
     s, c = np.sin(np.radians(35)), np.cos(np.radians(35))
-    turned = np.vstack([top, line([0.0045, 0, 0.058], [0.0045, 0, 0.17]),
-                        line([0.0045, 0, 0.17], [0.0045 + 0.2 * s, 0, 0.17 + 0.2 * c])[1:]])  # fmt: skip
+    turned = np.vstack([top, _line([0.0045, 0, 0.058], [0.0045, 0, 0.17]),
+                        _line([0.0045, 0, 0.17], [0.0045 + 0.2 * s, 0, 0.17 + 0.2 * c])[1:]])  # fmt: skip
     sk = Skeleton([trunk, spur, Branch(kept, np.full(len(kept), 0.004), "cane", 1),
                    Branch(turned, np.full(len(turned), 0.004), "cane", 1)])  # fmt: skip
     V, F = tube_mesh(sk, edge=0.002, caps="round")
@@ -619,17 +623,14 @@ def test_side_branches_leaving_a_limb_together_are_not_junction_noise() -> None:
     from vinetwin.scan.skeletonize import skeletonize
     from vinetwin.twin.skeleton import Branch
 
-    def line(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return a + np.linspace(0, 1, 30)[:, None] * (b - a)
-
     o, fork = np.zeros(3), np.array([0.0, 0.0, 0.15])
-    branches = [Branch(line(np.array([0, 0, -0.6]), o), np.full(30, 0.015), "branch"),
-                Branch(line(o, np.array([0, 0, 0.4])), np.full(30, 0.01), "branch", 0)]  # fmt: skip
+    branches = [Branch(_line([0, 0, -0.6], o), np.full(30, 0.015), "branch"),
+                Branch(_line(o, [0, 0, 0.4]), np.full(30, 0.01), "branch", 0)]  # fmt: skip
     tips = []
     for a in np.radians([0.0, 120.0, 240.0]):
         d = np.array([np.cos(a), np.sin(a), 1.0]) / np.sqrt(2.0)
         tips.append(fork + 0.09 * d)
-        branches.append(Branch(line(fork, tips[-1]), np.full(30, 0.008), "branch", 1))
+        branches.append(Branch(_line(fork, tips[-1]), np.full(30, 0.008), "branch", 1))
     V, F = tube_mesh(Skeleton(branches), edge=0.003, caps="round")
     for seed in range(3):
         P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], seed)
