@@ -25,6 +25,9 @@ AUTO_UNITS = ("m", "cm", "mm")
 #: A plant's largest extent (m), by kind: a dormant vine is 0.5-3 m (5 m for a long cordon),
 #: the measured trees of `../shared/data` up to 18 m. Outside it the scale is refused by name.
 PLANT_EXTENT: dict[str, tuple[float, float]] = {"vine": (0.15, 5.0), "tree": (0.15, 30.0)}
+#: A scan of a row of plants (`scan.row`) may be this long (m) when its units are named: `auto`
+#: judges the units by one plant's size and would take a long row for a plant in other units.
+ROW_EXTENT = 100.0
 #: The median distance between neighbouring points (m) of a scan of a plant: terrestrial and
 #: handheld LiDAR, stereo and photogrammetry give 0.5-30 mm.
 POINT_SPACING = (0.0002, 0.05)
@@ -110,12 +113,17 @@ class ScanImportConfig:
     """Distance between buds on a cane (m), for the two-bud spur's cut on a scan."""
     max_points: int = MAX_POINTS
     """Points kept while reading; a larger file is decimated (every k-th point) and says so."""
+    plant_number: int = 0
+    """A scan of a row holds several plants: import the K-th along the row (1 = the first, as
+    the refusal lists them; `scan.row`). 0: the scan holds one plant; several trunks are
+    refused, with where they stand."""
     clean: CleanConfig = CleanConfig()
     skeleton: SkeletonConfig = SkeletonConfig()
 
     def __post_init__(self) -> None:
         check_finite(self, ("edge", "internode"), positive=True)
         check_counts(self, ("cut_points",), 10_000)
+        check_counts(self, ("plant_number",), 1000)
         if not 0.02 <= self.internode <= 0.3:
             raise InputError(f"internode must lie in [0.02, 0.3] m, got {self.internode:g}")
         if not 10 * MIN_POINTS <= self.max_points <= 50_000_000:

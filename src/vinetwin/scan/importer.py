@@ -18,7 +18,13 @@ import numpy as np
 from vinetwin.errors import ScanError, TwinError
 from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates, label_kinds
-from vinetwin.scan.clean import find_ground, find_posts, find_wires, statistical_strays
+from vinetwin.scan.clean import (
+    find_ground,
+    find_posts,
+    find_wires,
+    post_like,
+    statistical_strays,
+)
 from vinetwin.scan.config import UNIT_SCALE, ScanImportConfig
 from vinetwin.scan.frame import (
     axis_vector,
@@ -38,6 +44,7 @@ from vinetwin.scan.read import (
 )
 from vinetwin.scan.refine import straighten_bumps
 from vinetwin.scan.result import ScanImport
+from vinetwin.scan.row import find_feet, split_plants
 from vinetwin.scan.skeletonize import skeletonize
 from vinetwin.twin.skeleton import Skeleton
 
@@ -115,6 +122,9 @@ def analyse_scan(
         removed_scan["post"], pts = pts[m], pts[~m]
     if len(pts) < 100:
         raise ScanError(f"{path}: nothing of a plant is left after cleaning ({len(pts)} points)")
+    on_ground = ground is not None and float(ground.normal @ up) > 0.95
+    pts = _one_plant(pts, up, ground.offset if ground and on_ground else None, spacing, scale,
+                     config.plant_number, path, removed_scan, notes)  # fmt: skip
     step("wires and posts")
     res = skeletonize(pts, config.skeleton, spacing, up, config.plant)
     removed_scan["apart"] = pts[res.stray_mask]
@@ -149,6 +159,41 @@ def analyse_scan(
         removed={k: to_vine(v) for k, v in removed_scan.items()}, read=data.read,
         spacing=spacing, result=res, notes=notes, mesh=mesh_v, seconds=secs,
     )  # fmt: skip
+
+
+def _one_plant(pts: Array, up: Array, ground_offset: float | None, spacing: float, scale: float,
+               number: int, path: str | Path, removed: dict[str, Array], notes: list[str]) -> Array:  # fmt: skip
+    """The points of the one plant imported: all of them when the scan holds one; the
+    `number`-th along the row when it holds several (`scan.row`; the others' points removed as
+    "others"); a row without `number` is refused, naming where its trunks stand."""
+    feet = find_feet(pts, up, ground_offset)
+    if len(feet) > 1:  # a post touching the canes stands on the ground like a trunk
+        lab = split_plants(pts, feet, spacing)
+        post = np.array([post_like(pts[lab == k], up) for k in range(len(feet))])
+        if post.any() and not post.all():
+            m = post[lab]
+            removed["post"] = np.concatenate([removed.get("post", np.zeros((0, 3))), pts[m]])
+            pts, feet = pts[~m], feet[~post]
+    where = "; ".join(f"{k + 1}: ({', '.join(f'{v / scale:.4g}' for v in f)})"
+                      for k, f in enumerate(feet))  # fmt: skip
+    if len(feet) == 1:
+        if number > 1:
+            raise ScanError(f"{path}: --plant-number {number}: the scan holds one plant")
+        return pts
+    if number == 0:
+        raise ScanError(
+            f"{path}: the scan holds {len(feet)} plants (a row); their trunks' feet, along the "
+            f"row, in the file's coordinates: {where}. Import one with --plant-number K "
+            "(docs/scans.md, rows)"
+        )
+    if number > len(feet):
+        raise ScanError(f"{path}: --plant-number {number}: the scan holds {len(feet)} plants "
+                        f"({where})")  # fmt: skip
+    lab = split_plants(pts, feet, spacing)  # again, the posts' points left out
+    removed["others"] = pts[lab != number - 1]
+    notes.append(f"plant {number} of the {len(feet)} in the scan (trunks' feet along the row, "
+                 f"in the file's coordinates: {where}); the others' points removed")  # fmt: skip
+    return pts[lab == number - 1]
 
 
 #: A plant is tubes: the skeleton's median radius (length-weighted) is under this share of the

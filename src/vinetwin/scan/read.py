@@ -20,7 +20,14 @@ import numpy as np
 
 from vinetwin.errors import ScanError
 from vinetwin.frames import Array
-from vinetwin.scan.config import AUTO_UNITS, MIN_POINTS, PLANT_EXTENT, POINT_SPACING, UNIT_SCALE
+from vinetwin.scan.config import (
+    AUTO_UNITS,
+    MIN_POINTS,
+    PLANT_EXTENT,
+    POINT_SPACING,
+    ROW_EXTENT,
+    UNIT_SCALE,
+)
 
 CLOUD_SUFFIXES = (".pcd", ".xyz", ".txt", ".csv", ".pts", ".asc", ".las", ".laz", ".e57")
 MESH_SUFFIXES = (".obj", ".stl", ".glb", ".gltf", ".off")
@@ -328,19 +335,19 @@ def detect_units(
     if extent <= 0:
         raise ScanError("every point is at the same place: no plant")
 
-    def fits(u: str) -> bool:
+    def fits(u: str, hi: float = hi_m) -> bool:
         s = UNIT_SCALE[u]
-        return lo_m <= extent * s <= hi_m and POINT_SPACING[0] <= spacing * s <= POINT_SPACING[1]
+        return lo_m <= extent * s <= hi and POINT_SPACING[0] <= spacing * s <= POINT_SPACING[1]
 
     def sizes(u: str) -> str:
         s = UNIT_SCALE[u]
         return f"{extent * s:.3g} m across, points {1000 * spacing * s:.3g} mm apart"
 
-    if units != "auto":
-        if not fits(units):
+    if units != "auto":  # a row of plants may be longer than one: up to ROW_EXTENT
+        if not fits(units, max(hi_m, ROW_EXTENT)):
             raise ScanError(
                 f"in {units} the scan would be {sizes(units)}: no {plant} (a {plant} is "
-                f"{lo_m:g}-{hi_m:g} m across, scanned "
+                f"{lo_m:g}-{hi_m:g} m across, a row up to {ROW_EXTENT:g} m, scanned "
                 f"{1000 * POINT_SPACING[0]:g}-{1000 * POINT_SPACING[1]:g} mm apart); check --units"
             )
         return units, f"{units} as given ({sizes(units)})"
@@ -351,7 +358,8 @@ def detect_units(
         raise ScanError(
             "no unit makes this scan a plant: "
             + "; ".join(f"in {u}: {sizes(u)}" for u in AUTO_UNITS)
-            + f" (a {plant} is {lo_m:g}-{hi_m:g} m across); name --units, or --plant tree"
+            + f" (a {plant} is {lo_m:g}-{hi_m:g} m across); name --units (a row of plants "
+            "longer than one plant: its units are not guessed), or --plant tree"
         )
     raise ScanError(
         "the units are ambiguous: "

@@ -4,7 +4,7 @@ and radius, the cut candidates, and with a truth twin the accuracy (`scan.evalua
 
 Files: `report.md` (for people), `report.json` (the same figures), `skeleton.png`, and
 `removed.ply` (the removed points coloured by reason: stray red, ground brown, wire blue, post
-grey, apart orange) to look at in any viewer."""
+grey, apart orange, other plants of a row purple) to look at in any viewer."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ import numpy as np
 
 from vinetwin.files import atomic_write_text, save_figure
 from vinetwin.frames import Array
+from vinetwin.scan.result import REMOVED
 from vinetwin.twin.skeleton import Skeleton
 
 if TYPE_CHECKING:
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
 KIND_COLOURS = {"trunk": "#5b3a1a", "cordon": "#a0522d", "spur": "#d2691e", "cane": "#2e8b57",
                 "shoot": "#7cfc00", "branch": "#1f77b4"}  # fmt: skip
 REMOVED_COLOURS = {"stray": (1, 0, 0), "ground": (0.55, 0.35, 0.15), "wire": (0, 0, 1),
-                   "post": (0.5, 0.5, 0.5), "apart": (1, 0.6, 0)}  # fmt: skip
+                   "post": (0.5, 0.5, 0.5), "apart": (1, 0.6, 0), "others": (0.6, 0.2, 0.8)}  # fmt: skip
 
 
 def plot_skeleton(
@@ -147,7 +148,7 @@ def _markdown(d: dict[str, Any]) -> str:
         f"- units: {d['units_note']}",
         f"- up axis from {d['up_from']}; point spacing {d['point_spacing_m'] * 1000:.2f} mm",
         f"- points read {c['read']}, kept {c['kept']}; removed: "
-        + ", ".join(f"{k} {c[k]}" for k in ("stray", "ground", "wire", "post", "apart")),
+        + ", ".join(f"{k} {c[k]}" for k in REMOVED),
         *[f"- {n}" for n in d.get("notes", [])],
         f"- skeleton: {d['skeleton']['branches']} branches, {d['skeleton']['candidates']} cut "
         f"candidates, {d['skeleton']['bridges']} gaps bridged (voxel "
