@@ -8,6 +8,7 @@ imported with the command's own code (`import_scan`, units and up axis detected)
 
     .venv/bin/python benchmarks/scan_accuracy.py [--plants sample dense ...] [--qualities realistic]
         [--json benchmarks/results/scan_accuracy.json]
+    .venv/bin/python benchmarks/scan_accuracy.py --row 3 [--plants ...]   # rows of plants
 """
 
 from __future__ import annotations
@@ -123,6 +124,56 @@ def run_one(name: str, quality: str, seed: int, work: Path, trellis: bool) -> di
             "up_from": scan.up_from, **acc.to_dict()}  # fmt: skip
 
 
+def run_row(name: str, n: int, seed: int, work: Path) -> list[dict[str, Any]]:
+    """A row: `n` copies of the plant along its row (x), each its width plus 3 cm from the
+    next (their canes touch), scanned at the realistic quality with the ground, a wire and
+    posts, written in millimetres (vines) or metres (trees) with the units named (a row is
+    longer than a plant: `scan.row`), and imported one plant at a time (`--plant-number`);
+    each plant against the copy whose trunk's foot is nearest its own."""
+    from vinetwin.errors import ScanError
+
+    plant, _ = PLANTS[name.partition("@")[0]]
+    truth = truth_skeleton(name)
+    V, F = tube_mesh(truth, edge=0.003, caps="round")
+    gap = float(np.ptp(V[:, 0])) + 0.03
+    V2 = np.vstack([V + [k * gap, 0, 0] for k in range(n)])
+    F2 = np.vstack([F + k * len(V) for k in range(n)])
+    q = dataclasses.replace(QUALITY_LADDER["realistic"], trellis=True)
+    wire = float(truth.branches[0].points[-1][2]) if plant == "vine" else None
+    P, _ = simulate_scan(V2, F2, q, seed, wire_height=wire)
+    T_scan_vine = scanner_frame(seed)
+    scale, units = (1000.0, "mm") if plant == "vine" else (1.0, "m")
+    f = work / f"{name}_row{n}_{seed}.ply"
+    write_ply(f, (P @ T_scan_vine[:3, :3].T + T_scan_vine[:3, 3]) * scale)
+    found = 1
+    try:
+        import_scan(
+            f, work / "row.twin", ScanImportConfig(plant=plant, units=units), overwrite=True
+        )
+    except ScanError as exc:  # a row is refused, naming its plants
+        found = int(str(exc).split("holds ")[1].split(" plants")[0]) if "plants" in str(exc) else 0
+    rows = []
+    for k in range(1, found + 1):
+        cfg = ScanImportConfig(plant=plant, units=units, plant_number=k)
+        t0 = time.perf_counter()
+        _, scan = import_scan(f, work / "row.twin", cfg, overwrite=True)
+        secs = time.perf_counter() - t0
+        T = scan.T_vine_scan @ T_scan_vine
+        foot = scan.skeleton.branches[0].points[0]
+        feet = [T[:3, :3] @ (truth.branches[0].points[0] + [j * gap, 0, 0]) + T[:3, 3]
+                for j in range(n)]  # fmt: skip
+        j = int(np.argmin([np.linalg.norm(x - foot) for x in feet]))
+        mine = transform_skeleton(truth_skeleton(name), T)
+        for b in mine.branches:
+            b.points = b.points + j * gap * T[:3, 0]
+        acc = skeleton_accuracy(scan.skeleton, mine, plant, 0.07, scan_points=scan.points)
+        rows.append({"plant": name, "row": n, "seed": seed, "plants_found": found,
+                     "plant_number": k, "copy": j, "foot_error_mm": round(1000 * float(
+                         np.linalg.norm(feet[j] - foot)), 1), "seconds": round(secs, 2),
+                     **acc.to_dict()})  # fmt: skip
+    return rows
+
+
 def print_spread(rows: list[dict[str, Any]]) -> None:
     """Per plant and quality over the seeds: completeness and precision (lowest-highest), and
     per seed the cut candidates found and the canes lost, so that no one seed's luck is quoted
@@ -162,9 +213,28 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--trellis", action="store_true", help="scan the ground, a wire and posts too")
     ap.add_argument("--spread", type=Path, help="print the seed spread of a stored results file")
+    ap.add_argument("--row", type=int, default=0,
+                    help="scan a row of this many copies of each plant, canes touching, and "
+                    "import each plant of it (`run_row`; the realistic quality, with trellis)")  # fmt: skip
     a = ap.parse_args()
     if a.spread:
         print_spread(json.loads(a.spread.read_text())["rows"])
+        return
+    if a.row:
+        print("| plant | seed | plants found / in the row | plant | copy | foot err mm | s "
+              "| complete | precise | canes lost/seen | cuts found/true |\n|---|---|---|---|---|---|---|---|---|---|---|")  # fmt: skip
+        rows = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for name in a.plants:
+                for seed in range(a.seeds):
+                    for r in run_row(name, a.row, seed, Path(tmp)):
+                        rows.append(r)
+                        print(f"| {name} | {seed} | {r['plants_found']} / {a.row} | {r['plant_number']} "
+                              f"| {r['copy'] + 1} | {r['foot_error_mm']} | {r['seconds']:.1f} "
+                              f"| {r['completeness']:.1%} | {r['precision']:.1%} | {r['canes_lost']}/{r['canes_seen']} "
+                              f"| {r['candidates_found']}/{r['candidates_true']} |", flush=True)  # fmt: skip
+        if a.json:
+            a.json.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
         return
     if a.set:
         a.plants = HELD_OUT if a.set == "held-out" else DEVELOPMENT

@@ -217,16 +217,6 @@ def _best_line(
     return best
 
 
-def post_like(Q: Array, up: Array) -> bool:
-    """A post's shape: straight (linearity over 0.9), at least 1 m long, within 15 degrees of
-    vertical."""
-    ev, evec = np.linalg.eigh(np.cov((Q - Q.mean(0)).T))
-    axis = evec[:, -1]
-    lin = (math.sqrt(max(ev[-1], 0)) - math.sqrt(max(ev[-2], 0))) / max(math.sqrt(ev[-1]), 1e-9)
-    length = float(np.ptp(Q @ axis))
-    return lin > 0.9 - 1e-9 and length >= 1.0 and abs(axis @ up) >= math.cos(math.radians(15))
-
-
 def find_posts(points: Array, up: Array, voxel: float) -> Mask:
     """(N,) True for points of posts: pieces apart from the rest that are straight
     (linearity > 0.9), at least 1 m long and within 15 degrees of vertical. The largest piece
@@ -243,7 +233,12 @@ def find_posts(points: Array, up: Array, voxel: float) -> Mask:
     mask_v = np.zeros(n, bool)
     posts = []
     for c in np.flatnonzero(sizes >= 20):
-        if post_like(P[lab == c], up):
+        Q = P[lab == c]
+        ev, evec = np.linalg.eigh(np.cov((Q - Q.mean(0)).T))
+        axis = evec[:, -1]
+        lin = (math.sqrt(max(ev[-1], 0)) - math.sqrt(max(ev[-2], 0))) / max(math.sqrt(ev[-1]), 1e-9)
+        length = float(np.ptp(Q @ axis))
+        if lin > 0.9 - 1e-9 and length >= 1.0 and abs(axis @ up) >= math.cos(math.radians(15)):
             posts.append(int(c))
     others = [c for c in np.flatnonzero(sizes >= 20) if c not in posts]
     if posts and not others:

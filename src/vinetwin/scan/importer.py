@@ -18,13 +18,7 @@ import numpy as np
 from vinetwin.errors import ScanError, TwinError
 from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates, label_kinds
-from vinetwin.scan.clean import (
-    find_ground,
-    find_posts,
-    find_wires,
-    post_like,
-    statistical_strays,
-)
+from vinetwin.scan.clean import find_ground, find_posts, find_wires, statistical_strays
 from vinetwin.scan.config import UNIT_SCALE, ScanImportConfig
 from vinetwin.scan.frame import (
     axis_vector,
@@ -44,7 +38,7 @@ from vinetwin.scan.read import (
 )
 from vinetwin.scan.refine import straighten_bumps
 from vinetwin.scan.result import ScanImport
-from vinetwin.scan.row import find_feet, split_plants
+from vinetwin.scan.row import find_feet, plants_of_row, split_plants
 from vinetwin.scan.skeletonize import skeletonize
 from vinetwin.twin.skeleton import Skeleton
 
@@ -168,12 +162,10 @@ def _one_plant(pts: Array, up: Array, ground_offset: float | None, spacing: floa
     "others"); a row without `number` is refused, naming where its trunks stand."""
     feet = find_feet(pts, up, ground_offset)
     if len(feet) > 1:  # a post touching the canes stands on the ground like a trunk
-        lab = split_plants(pts, feet, spacing)
-        post = np.array([post_like(pts[lab == k], up) for k in range(len(feet))])
-        if post.any() and not post.all():
-            m = post[lab]
-            removed["post"] = np.concatenate([removed.get("post", np.zeros((0, 3))), pts[m]])
-            pts, feet = pts[~m], feet[~post]
+        feet, post = plants_of_row(pts, feet, up, spacing)
+        if post.any():
+            removed["post"] = np.concatenate([removed.get("post", np.zeros((0, 3))), pts[post]])
+            pts = pts[~post]
     where = "; ".join(f"{k + 1}: ({', '.join(f'{v / scale:.4g}' for v in f)})"
                       for k, f in enumerate(feet))  # fmt: skip
     if len(feet) == 1:
