@@ -124,9 +124,13 @@ def run_one(name: str, quality: str, seed: int, work: Path, trellis: bool) -> di
             "up_from": scan.up_from, **acc.to_dict()}  # fmt: skip
 
 
+#: The closest planting (m) a row is simulated at (high-density apples: 0.5-1 m).
+ROW_SPACING = 0.5
+
+
 def run_row(name: str, n: int, seed: int, work: Path) -> list[dict[str, Any]]:
     """A row: `n` copies of the plant along its row (x), each its width plus 3 cm from the
-    next (their canes touch), scanned at the realistic quality with the ground, a wire and
+    next (their canes touch), or `ROW_SPACING` for a narrow tree, scanned at the realistic quality with the ground, a wire and
     posts, written in millimetres (vines) or metres (trees) with the units named (a row is
     longer than a plant: `scan.row`), and imported one plant at a time (`--plant-number`);
     each plant against the copy whose trunk's foot is nearest its own."""
@@ -135,7 +139,7 @@ def run_row(name: str, n: int, seed: int, work: Path) -> list[dict[str, Any]]:
     plant, _ = PLANTS[name.partition("@")[0]]
     truth = truth_skeleton(name)
     V, F = tube_mesh(truth, edge=0.003, caps="round")
-    gap = float(np.ptp(V[:, 0])) + 0.03
+    gap = max(float(np.ptp(V[:, 0])) + 0.03, ROW_SPACING)
     V2 = np.vstack([V + [k * gap, 0, 0] for k in range(n)])
     F2 = np.vstack([F + k * len(V) for k in range(n)])
     q = dataclasses.replace(QUALITY_LADDER["realistic"], trellis=True)

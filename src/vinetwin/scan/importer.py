@@ -1,7 +1,8 @@
 """`vinetwin import-scan`: a scan of a plant becomes a twin with a skeleton and cut candidates.
 
 read (`read`) -> units -> strays, ground (`clean`) -> the up axis (given, the ground's normal, or
-the trunk's direction from a first skeleton) -> wires and posts -> the skeleton (`skeletonize`)
+the trunk's direction from a first skeleton) -> wires and posts -> one plant of a row (`row`)
+-> the skeleton (`skeletonize`)
 -> the vine frame (`frame`) -> kinds and cut candidates (`candidates`) -> the mesh (tubes around
 the skeleton, or the scan's mesh) -> the twin. Nothing is written when any step refuses."""
 
@@ -118,7 +119,7 @@ def analyse_scan(
         raise ScanError(f"{path}: nothing of a plant is left after cleaning ({len(pts)} points)")
     on_ground = ground is not None and float(ground.normal @ up) > 0.95
     pts = _one_plant(pts, up, ground.offset if ground and on_ground else None, spacing, scale,
-                     config.plant_number, path, removed_scan, notes)  # fmt: skip
+                     config.plant_number, cl.posts, path, removed_scan, notes)  # fmt: skip
     step("wires and posts")
     res = skeletonize(pts, config.skeleton, spacing, up, config.plant)
     removed_scan["apart"] = pts[res.stray_mask]
@@ -156,14 +157,15 @@ def analyse_scan(
 
 
 def _one_plant(pts: Array, up: Array, ground_offset: float | None, spacing: float, scale: float,
-               number: int, path: str | Path, removed: dict[str, Array], notes: list[str]) -> Array:  # fmt: skip
+               number: int, posts: bool, path: str | Path, removed: dict[str, Array],
+               notes: list[str]) -> Array:  # fmt: skip
     """The points of the one plant imported: all of them when the scan holds one; the
     `number`-th along the row when it holds several (`scan.row`; the others' points removed as
     "others"); a row without `number` is refused, naming where its trunks stand."""
     feet = find_feet(pts, up, ground_offset)
     if len(feet) > 1:  # a post touching the canes stands on the ground like a trunk
         feet, post = plants_of_row(pts, feet, up, spacing)
-        if post.any():
+        if post.any() and posts:  # else the column's points go with the plants
             removed["post"] = np.concatenate([removed.get("post", np.zeros((0, 3))), pts[post]])
             pts = pts[~post]
     where = "; ".join(f"{k + 1}: ({', '.join(f'{v / scale:.4g}' for v in f)})"
