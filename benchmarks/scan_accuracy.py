@@ -178,6 +178,22 @@ def run_row(name: str, n: int, seed: int, work: Path) -> list[dict[str, Any]]:
     return rows
 
 
+def print_row_table(rows: list[dict[str, Any]]) -> None:
+    """Per plant of `run_row`: the plants found in the row, and over its plants completeness
+    and precision (lowest-highest), canes lost and cut candidates found, plant by plant."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(r["plant"], []).append(r)
+    print("\n| plant | plants found / in the row | complete | precise | canes lost, per plant "
+          "| cuts found / true, per plant |\n|---|---|---|---|---|---|")  # fmt: skip
+    for name, rs in groups.items():
+        c, p = [r["completeness"] for r in rs], [r["precision"] for r in rs]
+        print(f"| {name} | {rs[0]['plants_found']} / {rs[0]['row']} | {min(c):.1%}-{max(c):.1%} "
+              f"| {min(p):.1%}-{max(p):.1%} | {', '.join(str(r['canes_lost']) for r in rs)} of "
+              f"{rs[0]['canes_seen']} | {', '.join(str(r['candidates_found']) for r in rs)} / "
+              f"{rs[0]['candidates_true']} |")  # fmt: skip
+
+
 def print_spread(rows: list[dict[str, Any]]) -> None:
     """Per plant and quality over the seeds: completeness and precision (lowest-highest), and
     per seed the cut candidates found and the canes lost, so that no one seed's luck is quoted
@@ -216,13 +232,18 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--trellis", action="store_true", help="scan the ground, a wire and posts too")
-    ap.add_argument("--spread", type=Path, help="print the seed spread of a stored results file")
+    ap.add_argument(
+        "--spread",
+        type=Path,
+        help="print the seed spread of a stored results file (of a row's: the table per plant)",
+    )
     ap.add_argument("--row", type=int, default=0,
                     help="scan a row of this many copies of each plant, canes touching, and "
                     "import each plant of it (`run_row`; the realistic quality, with trellis)")  # fmt: skip
     a = ap.parse_args()
     if a.spread:
-        print_spread(json.loads(a.spread.read_text())["rows"])
+        stored = json.loads(a.spread.read_text())["rows"]
+        (print_row_table if stored and "row" in stored[0] else print_spread)(stored)
         return
     if a.row:
         print("| plant | seed | plants found / in the row | plant | copy | foot err mm | s "
@@ -237,6 +258,7 @@ def main() -> None:
                               f"| {r['copy'] + 1} | {r['foot_error_mm']} | {r['seconds']:.1f} "
                               f"| {r['completeness']:.1%} | {r['precision']:.1%} | {r['canes_lost']}/{r['canes_seen']} "
                               f"| {r['candidates_found']}/{r['candidates_true']} |", flush=True)  # fmt: skip
+        print_row_table(rows)
         if a.json:
             a.json.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
         return
