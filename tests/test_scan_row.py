@@ -118,3 +118,10 @@ def test_a_row_longer_than_a_plant_needs_its_units_named() -> None:
     assert detect_units(row, "mm", "vine", rng)[0] == "mm"
     with pytest.raises(ScanError, match="a row up to 100 m"):
         detect_units(row * 1000, "mm", "vine", rng)  # 8.4 km
+
+
+def test_a_plant_too_large_for_the_units_named_is_refused(tmp_path: Path) -> None:
+    P, lab = _row_of_cylinders(np.random.default_rng(3))
+    one = _ply_cloud(tmp_path / "one.ply", P[lab == 1] * 1000)  # 1.4 m, in millimetres
+    with pytest.raises(ScanError, match=r"in cm the vine would be 1\d.\d m across"):
+        analyse_scan(one, ScanImportConfig(up="z", units="cm"))  # a row's units let it in

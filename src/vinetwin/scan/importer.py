@@ -20,7 +20,7 @@ from vinetwin.errors import ScanError, TwinError
 from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates, label_kinds
 from vinetwin.scan.clean import find_ground, find_posts, find_wires, statistical_strays
-from vinetwin.scan.config import UNIT_SCALE, ScanImportConfig
+from vinetwin.scan.config import PLANT_EXTENT, UNIT_SCALE, ScanImportConfig
 from vinetwin.scan.frame import (
     axis_vector,
     guess_up,
@@ -120,6 +120,10 @@ def analyse_scan(
     on_ground = ground is not None and float(ground.normal @ up) > 0.95
     pts = _one_plant(pts, up, ground.offset if ground and on_ground else None, spacing, scale,
                      config.plant_number, cl.posts, path, removed_scan, notes)  # fmt: skip
+    extent = float(np.ptp(pts, axis=0).max())
+    if extent > PLANT_EXTENT[config.plant][1]:  # named units let a row through, not a plant
+        raise ScanError(f"{path}: in {units} the {config.plant} would be {extent:.3g} m across "
+                        f"(at most {PLANT_EXTENT[config.plant][1]:g} m): check --units")  # fmt: skip
     step("wires and posts")
     res = skeletonize(pts, config.skeleton, spacing, up, config.plant)
     removed_scan["apart"] = pts[res.stray_mask]
