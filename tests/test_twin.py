@@ -330,6 +330,31 @@ def test_estimate_cane_axis_from_mesh() -> None:
     assert abs(axis @ d) > 0.999
 
 
+def test_a_tube_mesh_past_its_vertex_ceiling_is_refused_before_it_is_made(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from vinetwin.errors import InputError
+    from vinetwin.twin import skeleton as skm
+    from vinetwin.twin.generator import generate_vine
+
+    sk = generate_vine(0)
+    V, _ = skm.tube_mesh(sk, edge=0.003, caps="flat")
+    # the count made before meshing is the mesh's own (the flat caps' centres aside)
+    n = sum(m * rings for m, _, _, rings in
+            (skm._rings(b.points, b.radii, 0.003, 2e-4) for b in sk.branches))  # fmt: skip
+    assert n <= len(V) <= n + 2 * len(sk.branches)
+    monkeypatch.setattr(skm, "MAX_TUBE_VERTICES", n - 1)
+    with pytest.raises(InputError, match=r"million vertices .* coarser edge"):
+        skm.tube_mesh(sk, edge=0.003, caps="flat")
+    # a thin branch carrying one thick radius: fine rings all along it
+    thin = skm.Branch(
+        np.outer(np.linspace(0, 20.0, 200), [1.0, 0, 0]), np.r_[0.1, np.full(199, 5e-4)]
+    )
+    monkeypatch.setattr(skm, "MAX_TUBE_VERTICES", 30_000_000)
+    with pytest.raises(InputError, match="thin branch carrying a thick radius"):
+        skm.tube_mesh([thin] * 20, edge=0.0005)
+
+
 def test_bundled_samples_load(sample_twin_dir: Path) -> None:
     root = sample_twin_dir.parent
     samples = sorted(root.glob("*.twin"))
