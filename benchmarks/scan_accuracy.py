@@ -134,7 +134,7 @@ def run_row(name: str, n: int, seed: int, work: Path) -> list[dict[str, Any]]:
     posts, written in millimetres (vines) or metres (trees) with the units named (a row is
     longer than a plant: `scan.row`), and imported one plant at a time (`--plant-number`);
     each plant against the copy whose trunk's foot is nearest its own."""
-    from vinetwin.errors import ScanError
+    from vinetwin.errors import SeveralPlants
 
     plant, _ = PLANTS[name.partition("@")[0]]
     truth = truth_skeleton(name)
@@ -154,8 +154,8 @@ def run_row(name: str, n: int, seed: int, work: Path) -> list[dict[str, Any]]:
         import_scan(
             f, work / "row.twin", ScanImportConfig(plant=plant, units=units), overwrite=True
         )
-    except ScanError as exc:  # a row is refused, naming its plants
-        found = int(str(exc).split("holds ")[1].split(" plants")[0]) if "plants" in str(exc) else 0
+    except SeveralPlants as exc:  # a row is refused, naming its plants
+        found = exc.count
     rows = []
     for k in range(1, found + 1):
         cfg = ScanImportConfig(plant=plant, units=units, plant_number=k)

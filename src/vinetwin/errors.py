@@ -66,6 +66,14 @@ class ScanError(VinetwinError):
     `import-scan` can make a twin of (empty, all NaN, a plane, a ball, a scale no plant has)."""
 
 
+class SeveralPlants(ScanError):
+    """A scan of a row holds `count` plants and none was named (`--plant-number`)."""
+
+    def __init__(self, message: str, count: int) -> None:
+        self.count = count
+        super().__init__(message)
+
+
 class BackendUnavailable(VinetwinError):
     """A rendering backend cannot start here (no EGL, library missing); `reason` says why."""
 

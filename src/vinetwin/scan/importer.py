@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from vinetwin.errors import ScanError, TwinError
+from vinetwin.errors import ScanError, SeveralPlants, TwinError
 from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates, label_kinds
 from vinetwin.scan.clean import find_ground, find_posts, find_wires, statistical_strays
@@ -117,9 +117,9 @@ def analyse_scan(
         removed_scan["post"], pts = pts[m], pts[~m]
     if len(pts) < 100:
         raise ScanError(f"{path}: nothing of a plant is left after cleaning ({len(pts)} points)")
-    on_ground = ground is not None and float(ground.normal @ up) > 0.95
-    pts = _one_plant(pts, up, ground.offset if ground and on_ground else None, spacing, scale,
-                     config.plant_number, cl.posts, path, removed_scan, notes)  # fmt: skip
+    level = ground.offset if ground is not None and float(ground.normal @ up) > 0.95 else None
+    pts = _one_plant(pts, up, level, spacing, scale, config.plant_number, cl.posts, path,
+                     removed_scan, notes)  # fmt: skip
     extent = float(np.ptp(pts, axis=0).max())
     if extent > PLANT_EXTENT[config.plant][1]:  # named units let a row through, not a plant
         raise ScanError(f"{path}: in {units} the {config.plant} would be {extent:.3g} m across "
@@ -167,11 +167,16 @@ def _one_plant(pts: Array, up: Array, ground_offset: float | None, spacing: floa
     `number`-th along the row when it holds several (`scan.row`; the others' points removed as
     "others"); a row without `number` is refused, naming where its trunks stand."""
     feet = find_feet(pts, up, ground_offset)
+    lab: np.ndarray | None = None  # each point's plant, while it holds for these points and feet
     if len(feet) > 1:  # a post touching the canes stands on the ground like a trunk
-        feet, post = plants_of_row(pts, feet, up, spacing)
+        found = len(feet)
+        feet, post, lab = plants_of_row(pts, feet, up, spacing)
         if post.any() and posts:  # else the column's points go with the plants
             removed["post"] = np.concatenate([removed.get("post", np.zeros((0, 3))), pts[post]])
             pts = pts[~post]
+            lab = None
+        if len(feet) < found:
+            lab = None
     where = "; ".join(f"{k + 1}: ({', '.join(f'{v / scale:.4g}' for v in f)})"
                       for k, f in enumerate(feet))  # fmt: skip
     if len(feet) == 1:
@@ -179,15 +184,17 @@ def _one_plant(pts: Array, up: Array, ground_offset: float | None, spacing: floa
             raise ScanError(f"{path}: --plant-number {number}: the scan holds one plant")
         return pts
     if number == 0:
-        raise ScanError(
+        raise SeveralPlants(
             f"{path}: the scan holds {len(feet)} plants (a row); their trunks' feet, along the "
             f"row, in the file's coordinates: {where}. Import one with --plant-number K "
-            "(docs/scans.md, rows)"
+            "(docs/scans.md, rows)",
+            len(feet),
         )
     if number > len(feet):
         raise ScanError(f"{path}: --plant-number {number}: the scan holds {len(feet)} plants "
                         f"({where})")  # fmt: skip
-    lab = split_plants(pts, feet, spacing)  # again, the posts' points left out
+    if lab is None:  # posts or weeds left out: split again among the plants
+        lab = split_plants(pts, feet, spacing)
     removed["others"] = pts[lab != number - 1]
     notes.append(f"plant {number} of the {len(feet)} in the scan (trunks' feet along the row, "
                  f"in the file's coordinates: {where}); the others' points removed")  # fmt: skip

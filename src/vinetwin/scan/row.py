@@ -20,7 +20,6 @@ steeper than `FOOT_BAND` over the row may miss the higher feet.
 from __future__ import annotations
 
 import numpy as np
-from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
@@ -59,18 +58,16 @@ def find_feet(points: Array, up: Array, ground_offset: float | None = None) -> A
     ordered along the row (the feet's principal horizontal direction, sign: its largest
     component positive); one row when the scan holds one plant. `ground_offset`: the ground
     plane is {p : up . p = offset} (else the lowest point is the ground)."""
-    from vinetwin.scan.skeletonize import voxel_thin
+    from vinetwin.scan.skeletonize import _graph, voxel_thin
 
     h = points @ up
+    lowest = points[[int(np.argmin(h))]]  # one plant, wherever its foot
     base = float(h.min()) if ground_offset is None else ground_offset
     band = points[h - base <= FOOT_BAND]
     if len(band) < 10:
-        return points[[int(np.argmin(h))]]
+        return lowest
     P, _ = voxel_thin(band, 0.01)
-    pairs = cKDTree(P).query_pairs(FOOT_LINK, output_type="ndarray")
-    n = len(P)
-    g = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, lab = csgraph.connected_components(g, directed=False)
+    _, lab = csgraph.connected_components(_graph(P, FOOT_LINK), directed=False)
     hp = P @ up - base
     feet = []
     for c in np.unique(lab):
@@ -82,13 +79,11 @@ def find_feet(points: Array, up: Array, ground_offset: float | None = None) -> A
         if abs(float(axis @ up)) >= np.cos(np.radians(FOOT_LEAN)):
             feet.append(Q[np.argmin(hp[m])])
     if not feet:
-        return points[[int(np.argmin(h))]]
+        return lowest
     F = np.array(feet)
     flat = F - np.outer(F @ up, up)  # horizontal positions
     # feet nearer than PLANT_SPACING are one plant: single linkage, the lowest foot kept
-    pairs = cKDTree(flat).query_pairs(PLANT_SPACING, output_type="ndarray")
-    g = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(F),) * 2)
-    _, lab = csgraph.connected_components(g, directed=False)
+    _, lab = csgraph.connected_components(_graph(flat, PLANT_SPACING), directed=False)
     F = np.array([F[lab == c][np.argmin(F[lab == c] @ up)] for c in np.unique(lab)])
     if len(F) == 1:
         return F
@@ -103,14 +98,12 @@ def split_plants(points: Array, feet: Array, spacing: float) -> np.ndarray:
     the scan (shortest paths over the points thinned to `SPLIT_VOXEL` or the spacing, joined
     within 2.5 voxels); points of pieces no path reaches go with the nearest point that one
     reaches."""
-    from vinetwin.scan.skeletonize import voxel_thin
+    from vinetwin.scan.skeletonize import _graph, voxel_thin
 
     voxel = max(SPLIT_VOXEL, spacing)
     P, inv = voxel_thin(points, voxel)
-    pairs = cKDTree(P).query_pairs(2.5 * voxel, output_type="ndarray")
-    w = np.linalg.norm(P[pairs[:, 0]] - P[pairs[:, 1]], axis=1) + 1e-9
+    g = _graph(P, 2.5 * voxel)
     n = len(P)
-    g = sparse.coo_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(n, n)).tocsr()
     tree = cKDTree(P)
     # each foot's sources: the thinned points within a trunk's width of it
     src, owner = [], []
@@ -146,10 +139,11 @@ def _post_column(points: Array, foot: Array, up: Array) -> np.ndarray | None:
 
 def plants_of_row(
     points: Array, feet: Array, up: Array, spacing: float
-) -> tuple[Array, np.ndarray]:
+) -> tuple[Array, np.ndarray, np.ndarray]:
     """The feet that are plants' (a post or a bare stem is none, `_post_column`; nor is a piece
     holding under `MIN_PLANT` of the largest plant's points: a weed, a stump, a stray heap),
-    and the mask of the posts' points. When none is left, the largest stays."""
+    the mask of the posts' points, and each point's plant (`split_plants`) among the feet
+    given. When none is left, the largest stays."""
     lab = split_plants(points, feet, spacing)
     sizes = np.bincount(lab, minlength=len(feet))
     keep = sizes >= MIN_PLANT * sizes.max()
@@ -160,5 +154,5 @@ def plants_of_row(
         if col is not None:
             post[idx[col]], keep[k] = True, False
     if not keep.any():
-        return feet[[int(np.argmax(sizes))]], np.zeros(len(points), bool)
-    return feet[keep], post
+        return feet[[int(np.argmax(sizes))]], np.zeros(len(points), bool), lab
+    return feet[keep], post, lab
