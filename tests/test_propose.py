@@ -91,6 +91,33 @@ def test_a_removed_cane_longer_than_the_kept_one_is_cut_where_they_part() -> Non
     assert np.linalg.norm(r.point - fork) == pytest.approx(0.018 / math.sin(math.pi / 4), abs=0.003)
 
 
+def test_the_rule_does_not_depend_on_how_finely_the_skeleton_is_sampled() -> None:
+    """Canes sampled only at their nodes (7 cm apart, as hydroshoot digitises them), one with a
+    1.2 mm lateral starting at its node 7 cm out: the lateral goes with its cane (no cut of
+    its own), and every cut is where it is on the same vine sampled every 2 mm. (The rule once
+    ramped the lateral's radius from its cane's over its first internode and removed it.)"""
+    from vinetwin.twin.skeleton import resample
+
+    sk = known_vine()
+    for b in sk.branches:
+        if b.kind == "cane":
+            b.points, b.radii = b.points[::10], b.radii[::10]  # 7 points, 7 cm apart
+    i_cane = next(i for i, b in enumerate(sk.branches) if b.label == "cane0.3-0")
+    start = sk.branches[i_cane].points[1]
+    way = np.array([0.0, 1.0, 1.0]) / math.sqrt(2)
+    sk.branches.append(Branch(start + np.outer(0.07 * np.arange(4), way), np.full(4, 0.0012),
+                              "cane", parent=i_cane, label="lateral"))  # fmt: skip
+    cfg = RuleConfig(rule="spur", buds=2, internode=INTERNODE)
+    sparse = propose_cuts(sk, cfg)
+    assert not any("lateral" in c.reason for c in sparse)
+    dense = Skeleton([Branch(*resample(b.points, b.radii, 0.002), b.kind, b.parent, b.label, b.nodes)
+                      for b in sk.branches])  # fmt: skip
+    fine = propose_cuts(dense, cfg)
+    assert len(fine) == len(sparse) == 4
+    for c in sparse:
+        assert min(np.linalg.norm(f.point - c.point) for f in fine) < 1e-3, c.reason
+
+
 def test_spur_rule_with_a_stated_internode_counts_from_the_cordon() -> None:
     """Without the skeleton's nodes (as on a scan), bud k sits FIRST_NODE + (k-1) internodes
     past the cordon's surface."""

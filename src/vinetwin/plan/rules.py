@@ -2,8 +2,8 @@
 sits, with the reason.
 
 The rules are defined on the plant's shape, not on how its branches happen to be split into
-polylines, so that they give the same cuts on a scan's skeleton and on the true skeleton of the
-same vine:
+polylines nor on how finely those are sampled (they run on `evenly_sampled`), so that they give
+the same cuts on a scan's skeleton and on the true skeleton of the same vine:
 
 - a **shoot** is a tip's path back to the permanent wood (trunk, cordons; for a tree, the tip's
   last fork), `twin.skeleton.tip_paths`;
@@ -37,6 +37,7 @@ from vinetwin.plan.config import RuleConfig
 from vinetwin.twin.skeleton import (
     FIRST_NODE,
     PERMANENT,
+    Branch,
     Skeleton,
     arc_length,
     nearest_on_polyline,
@@ -144,6 +145,24 @@ _VINE_KINDS = {"cordon", "spur", "cane", "shoot"}
 
 def _vine(sk: Skeleton) -> bool:
     return any(b.kind in _VINE_KINDS for b in sk.branches)
+
+
+def evenly_sampled(sk: Skeleton) -> Skeleton:
+    """The skeleton with each branch resampled every `SHOOT_STEP` (kinds, parents, labels and
+    nodes kept): the rules see the plant's shape, however finely its source sampled it. On a
+    hydroshoot vine's own skeleton (nodes 6-9 cm apart) a lateral's radius was otherwise
+    ramped from its cane's over its first internode, and the same vine sampled every 2 mm
+    got 3 of its 17 spur-rule cuts elsewhere."""
+    import copy
+
+    out = copy.copy(sk)
+    out.branches = []
+    for b in sk.branches:
+        P, R = resample(b.points, b.radii, SHOOT_STEP) if len(b.points) > 1 else (b.points, b.radii)
+        out.branches.append(
+            Branch(P, R, kind=b.kind, parent=b.parent, label=b.label, nodes=b.nodes)
+        )
+    return out
 
 
 def shoots(sk: Skeleton) -> list[Shoot]:
@@ -264,7 +283,9 @@ def _placement(s: Shoot, up: Array) -> tuple[float, float]:
 
 
 def analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]]:
-    """The skeleton's shoots with their spurs, partings and buds."""
+    """The skeleton's shoots with their spurs, partings and buds (on `evenly_sampled(sk)`:
+    the shoots' branch indices are the skeleton's)."""
+    sk = evenly_sampled(sk)
     ss = shoots(sk)
     groups = _group(ss, cfg.spur_radius)
     wood = _wood(sk)
@@ -309,6 +330,7 @@ def propose_cuts(sk: Skeleton, cfg: RuleConfig, up: Array | None = None) -> list
             "the cane rule is for grapevines (a skeleton with cordons, spurs, canes or shoots); "
             "this skeleton is a tree's (branches only): use the spur rule"
         )
+    sk = evenly_sampled(sk)
     ss, groups = analyse(sk, cfg)
     if not ss:
         raise InputError("the skeleton has no canes or shoots to prune")
