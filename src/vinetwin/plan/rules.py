@@ -27,7 +27,7 @@ else is removed at the permanent wood.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -153,16 +153,14 @@ def evenly_sampled(sk: Skeleton) -> Skeleton:
     hydroshoot vine's own skeleton (nodes 6-9 cm apart) a lateral's radius was otherwise
     ramped from its cane's over its first internode, and the same vine sampled every 2 mm
     got 3 of its 17 spur-rule cuts elsewhere."""
-    import copy
 
-    out = copy.copy(sk)
-    out.branches = []
-    for b in sk.branches:
-        P, R = resample(b.points, b.radii, SHOOT_STEP) if len(b.points) > 1 else (b.points, b.radii)
-        out.branches.append(
-            Branch(P, R, kind=b.kind, parent=b.parent, label=b.label, nodes=b.nodes)
-        )
-    return out
+    def even(b: Branch) -> Branch:
+        if len(b.points) < 2:
+            return b
+        P, R = resample(b.points, b.radii, SHOOT_STEP)
+        return replace(b, points=P, radii=R)
+
+    return replace(sk, branches=[even(b) for b in sk.branches])
 
 
 def shoots(sk: Skeleton) -> list[Shoot]:
@@ -285,7 +283,11 @@ def _placement(s: Shoot, up: Array) -> tuple[float, float]:
 def analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]]:
     """The skeleton's shoots with their spurs, partings and buds (on `evenly_sampled(sk)`:
     the shoots' branch indices are the skeleton's)."""
-    sk = evenly_sampled(sk)
+    return _analyse(evenly_sampled(sk), cfg)
+
+
+def _analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]]:
+    """`analyse` on a skeleton already evenly sampled."""
     ss = shoots(sk)
     groups = _group(ss, cfg.spur_radius)
     wood = _wood(sk)
@@ -331,7 +333,7 @@ def propose_cuts(sk: Skeleton, cfg: RuleConfig, up: Array | None = None) -> list
             "this skeleton is a tree's (branches only): use the spur rule"
         )
     sk = evenly_sampled(sk)
-    ss, groups = analyse(sk, cfg)
+    ss, groups = _analyse(sk, cfg)
     if not ss:
         raise InputError("the skeleton has no canes or shoots to prune")
     out: list[Proposal] = []

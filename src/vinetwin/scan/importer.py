@@ -171,11 +171,11 @@ def _one_plant(pts: Array, up: Array, ground_offset: float | None, spacing: floa
     if len(feet) > 1:  # a post touching the canes stands on the ground like a trunk
         found = len(feet)
         feet, post, lab = plants_of_row(pts, feet, up, spacing)
-        if post.any() and posts:  # else the column's points go with the plants
+        dropped = post.any() and posts  # else the column's points go with the plants
+        if dropped:
             removed["post"] = np.concatenate([removed.get("post", np.zeros((0, 3))), pts[post]])
             pts = pts[~post]
-            lab = None
-        if len(feet) < found:
+        if dropped or len(feet) < found:
             lab = None
     where = "; ".join(f"{k + 1}: ({', '.join(f'{v / scale:.4g}' for v in f)})"
                       for k, f in enumerate(feet))  # fmt: skip

@@ -58,7 +58,7 @@ def find_feet(points: Array, up: Array, ground_offset: float | None = None) -> A
     ordered along the row (the feet's principal horizontal direction, sign: its largest
     component positive); one row when the scan holds one plant. `ground_offset`: the ground
     plane is {p : up . p = offset} (else the lowest point is the ground)."""
-    from vinetwin.scan.skeletonize import _graph, voxel_thin
+    from vinetwin.scan.skeletonize import radius_graph, voxel_thin
 
     h = points @ up
     lowest = points[[int(np.argmin(h))]]  # one plant, wherever its foot
@@ -67,7 +67,7 @@ def find_feet(points: Array, up: Array, ground_offset: float | None = None) -> A
     if len(band) < 10:
         return lowest
     P, _ = voxel_thin(band, 0.01)
-    _, lab = csgraph.connected_components(_graph(P, FOOT_LINK), directed=False)
+    _, lab = csgraph.connected_components(radius_graph(P, FOOT_LINK), directed=False)
     hp = P @ up - base
     feet = []
     for c in np.unique(lab):
@@ -83,7 +83,7 @@ def find_feet(points: Array, up: Array, ground_offset: float | None = None) -> A
     F = np.array(feet)
     flat = F - np.outer(F @ up, up)  # horizontal positions
     # feet nearer than PLANT_SPACING are one plant: single linkage, the lowest foot kept
-    _, lab = csgraph.connected_components(_graph(flat, PLANT_SPACING), directed=False)
+    _, lab = csgraph.connected_components(radius_graph(flat, PLANT_SPACING), directed=False)
     F = np.array([F[lab == c][np.argmin(F[lab == c] @ up)] for c in np.unique(lab)])
     if len(F) == 1:
         return F
@@ -98,11 +98,11 @@ def split_plants(points: Array, feet: Array, spacing: float) -> np.ndarray:
     the scan (shortest paths over the points thinned to `SPLIT_VOXEL` or the spacing, joined
     within 2.5 voxels); points of pieces no path reaches go with the nearest point that one
     reaches."""
-    from vinetwin.scan.skeletonize import _graph, voxel_thin
+    from vinetwin.scan.skeletonize import radius_graph, voxel_thin
 
     voxel = max(SPLIT_VOXEL, spacing)
     P, inv = voxel_thin(points, voxel)
-    g = _graph(P, 2.5 * voxel)
+    g = radius_graph(P, 2.5 * voxel)
     n = len(P)
     tree = cKDTree(P)
     # each foot's sources: the thinned points within a trunk's width of it

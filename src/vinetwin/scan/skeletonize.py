@@ -70,7 +70,8 @@ def voxel_thin(points: Array, voxel: float) -> tuple[Array, np.ndarray]:
     return sums / counts[:, None], inv
 
 
-def _graph(P: Array, radius: float) -> sparse.csr_matrix:
+def radius_graph(P: Array, radius: float) -> sparse.csr_matrix:
+    """The symmetric graph joining points within `radius`, weighted by their distance."""
     pairs = cKDTree(P).query_pairs(radius, output_type="ndarray")
     w = np.linalg.norm(P[pairs[:, 0]] - P[pairs[:, 1]], axis=1) + 1e-9
     n = len(P)
@@ -149,7 +150,7 @@ def skeletonize(
     P, inv = voxel_thin(points, voxel)
     if len(P) < 20:
         raise ScanError(f"only {len(P)} voxels of {voxel * 1000:.3g} mm: too little for a plant")
-    g = _graph(P, 2.5 * voxel)
+    g = radius_graph(P, 2.5 * voxel)
     g, bridges, on_plant = _bridge(P, g, max(cfg.gap, 6 * voxel))
     if not on_plant.all():  # pieces of some size (a twig, not a stray) across wider gaps
         g, more, on_plant = _bridge(P, g, max(2 * cfg.gap, 12 * voxel), min_piece=10)
