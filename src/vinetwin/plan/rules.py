@@ -283,11 +283,7 @@ def _placement(s: Shoot, up: Array) -> tuple[float, float]:
 def analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]]:
     """The skeleton's shoots with their spurs, partings and buds (on `evenly_sampled(sk)`:
     the shoots' branch indices are the skeleton's)."""
-    return _analyse(evenly_sampled(sk), cfg)
-
-
-def _analyse(sk: Skeleton, cfg: RuleConfig) -> tuple[list[Shoot], list[list[int]]]:
-    """`analyse` on a skeleton already evenly sampled."""
+    sk = evenly_sampled(sk)
     ss = shoots(sk)
     groups = _group(ss, cfg.spur_radius)
     wood = _wood(sk)
@@ -332,8 +328,8 @@ def propose_cuts(sk: Skeleton, cfg: RuleConfig, up: Array | None = None) -> list
             "the cane rule is for grapevines (a skeleton with cordons, spurs, canes or shoots); "
             "this skeleton is a tree's (branches only): use the spur rule"
         )
-    sk = evenly_sampled(sk)
-    ss, groups = _analyse(sk, cfg)
+    sk = evenly_sampled(sk)  # for the spur bases and the head below; `analyse` samples again
+    ss, groups = analyse(sk, cfg)
     if not ss:
         raise InputError("the skeleton has no canes or shoots to prune")
     out: list[Proposal] = []
