@@ -323,3 +323,61 @@ def test_the_command_names_bad_options_and_a_missing_skeleton(
     rc, text = said(["propose", str(vine_twin.root), "--replace", "--json", str(out)])
     assert rc == 0 and "cuts proposed by the spur rule" in text
     assert json.loads(out.read_text())["counts"]["proposed"] >= 1
+
+
+def test_the_search_keeps_the_arms_wrist_off_the_vine(vine_twin: Twin) -> None:
+    """The parts of the arm fixed to the camera (link 7, the tool mount, the housing) are
+    checked along the approach as the planner models them (`arm.sphere_model`): a cane where
+    link 7 passes on the default approach, clear of the camera and tool, rules that pose out;
+    the pose chosen instead keeps every wrist sphere its clearance, checked against the mesh's
+    vertices sphere by sphere."""
+    from scipy.spatial import cKDTree
+
+    from vinetwin.arm import FLANGE_OFFSET, sphere_model
+    from vinetwin.plan.job_config import ReachConfig
+    from vinetwin.plan.search import Wrist, _clearances
+
+    cfg = SearchConfig()
+    T_fc = vine_twin.T_flange_camera
+    wrist = Wrist.for_arm(T_fc, cfg)
+    travel = cfg.standoff - cfg.body.tool_reach
+    s = sphere_model(T_fc, T_fc[:3, 3], 0.01)
+    use = np.isin(s.frame, (7, 8)) & (np.asarray(s.part) != "tool")
+    centres = s.centre[use].copy()
+    centres[s.frame[use] == 7, 2] -= FLANGE_OFFSET
+    cam = (centres - T_fc[:3, 3]) @ T_fc[:3, :3]
+    # for points anywhere around the wrist, the wrist's gap is at most the planner's spheres'
+    # (each swept exactly along the approach) plus 0.3 mm: as conservative as the planner
+    keep = np.where(s.frame[use] == 7, ReachConfig().clearance, cfg.body.margin)
+    rng = np.random.default_rng(0)
+    Q = rng.uniform([-0.25, -0.2, -0.3], [0.15, 0.2, 0.2], (4000, 3))
+    t = np.clip(Q[:, None, 2] - cam[None, :, 2], 0.0, travel)
+    seg = np.linalg.norm(Q[:, None] - cam[None] - t[..., None] * [0, 0, 1], axis=2)
+    planner = (seg - s.radius[use] - keep + cfg.body.margin).min(axis=1)
+    ours = (np.linalg.norm(Q[:, None] - wrist.points[None], axis=2) - wrist.need).min(axis=1)
+    assert (ours <= planner + 3e-4).all()
+    assert np.median(planner - ours) < 1e-3  # and not much more
+
+    sk = known_vine()
+    cut = _upright_cut(0.3, 2)
+    axis = np.array([0.0, 0.0, 1.0])
+    T0 = pruning_pose(cut, axis, default_approach(axis, cfg.standoff))
+    # a cane along the image's y, 5 cm to the wrist's side of the optical axis, level with the
+    # camera's front: 25 mm from the camera's body, through link 7's sweep
+    ends = np.array([[-0.05, -0.1, 0.0], [-0.05, 0.1, 0.0]]) @ T0[:3, :3].T + T0[:3, 3]
+    sk.branches.append(Branch(_line(list(ends[0]), list(ends[1])), np.full(60, 0.004), "cane",
+                              parent=-1, label="blocker"))  # fmt: skip
+    twin = twin_from_skeleton(vine_twin.root.parent / "wrist.twin", sk, edge=0.003)
+    obs = _obstacles(twin)
+    dflt = default_approach(axis, cfg.standoff)
+    assert _clearances(obs, cut, axis, [dflt], cfg)[0] > cfg.body.margin  # camera, tool clear
+    assert _clearances(obs, cut, axis, [dflt], cfg, wrist)[0] < 0  # link 7 is not
+    cane = np.array([cut + [0, 0, dz] for dz in np.linspace(-0.05, 0.05, 11)])
+    found = search_pose(obs, cut, axis, cane, 0.004, cfg, wrist)
+    assert found.best is not None and found.best.clearance >= cfg.body.margin
+    Tb = pruning_pose(cut, axis, found.best.approach)
+    tree = cKDTree(np.asarray(twin.load_mesh().vertices))
+    for z in np.linspace(0.0, travel, 9):
+        world = (cam + [0, 0, z]) @ Tb[:3, :3].T + Tb[:3, 3]
+        gap = tree.query(world)[0] - s.radius[use] - keep
+        assert gap.min() > -1.5e-3  # vertices of a 3 mm mesh: the surface within 1.5 mm

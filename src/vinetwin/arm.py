@@ -198,6 +198,21 @@ def _capsule_spheres(p0: Any, p1: Any, r: float) -> list[Array]:
     return [p0 + (p1 - p0) * k / (n - 1) for k in range(n)] if n > 1 else [p0]
 
 
+def wrist_parts(T_flange_camera: Any) -> list[tuple[str, Array, Array, float]]:
+    """The parts fixed to the flange as capsules in the flange frame (part, end, end, radius):
+    link 7, the tool mount and the D405's housing (a sphere around its 42 x 42 x 23 mm body,
+    1 mm to spare). `sphere_model` covers them with spheres."""
+    T_fc = np.asarray(T_flange_camera, float)
+    _, a, b, r7 = _CAPSULES[6]
+    down = np.array([0.0, 0.0, FLANGE_OFFSET])
+    housing = (T_fc @ np.array([0.0, 0.0, -0.0115, 1.0]))[:3]
+    return [
+        ("link7", np.asarray(a, float) - down, np.asarray(b, float) - down, r7),
+        ("mount", np.zeros(3), np.array([0.0, 0.0, _MOUNT[1]]), _MOUNT[0]),
+        ("camera", housing, housing, math.sqrt(0.021**2 * 2 + 0.0115**2) + 0.001),
+    ]
+
+
 def sphere_model(T_flange_camera: Any, blade: Any, tool_radius: float) -> Spheres:
     """The Panda's spheres (links 1-7, the tool mount), the D405's and the tool's (a capsule of
     `tool_radius` from the camera's optical centre to the blade point, both in the flange
@@ -213,11 +228,13 @@ def sphere_model(T_flange_camera: Any, blade: Any, tool_radius: float) -> Sphere
 
     for f, p0, p1, r in _CAPSULES:
         add(f, _capsule_spheres(p0, p1, r), r, f"link{f}")
-    for p in _capsule_spheres((0.0, 0.0, 0.0), (0.0, 0.0, _MOUNT[1]), _MOUNT[0]):
-        add(8, [p], _MOUNT[0], "mount")
+    hand = {part: (p0, p1, r) for part, p0, p1, r in wrist_parts(T_flange_camera)}
+    p0, p1, r = hand["mount"]
+    for p in _capsule_spheres(p0, p1, r):
+        add(8, [p], r, "mount")
+    p0, _, r = hand["camera"]
+    add(8, [p0], r, "camera")
     T_fc = np.asarray(T_flange_camera, float)
-    housing = T_fc @ np.array([0.0, 0.0, -0.0115, 1.0])
-    add(8, [housing[:3]], math.sqrt(0.021**2 * 2 + 0.0115**2) + 0.001, "camera")
     add(8, _capsule_spheres(T_fc[:3, 3], np.asarray(blade, float), tool_radius), tool_radius,
         "tool")  # fmt: skip
     return Spheres(np.asarray(frames), np.asarray(centres), np.asarray(radii), tuple(parts))

@@ -123,6 +123,10 @@ class SearchConfig(JsonFields):
     """Approach elevations tried, evenly over `elevation_range`."""
     elevation_range: tuple[float, float] = (-30.0, 60.0)
     """Approach elevations (deg; positive looks down)."""
+    rolls: tuple[float, ...] = (0.0, 180.0)
+    """Image rolls (deg) tried in turn, each over the whole grid, until one has a passing
+    direction: 0 puts the cane across the image with the arm's wrist toward the cane's base,
+    180 the same image turned over, the wrist toward its tip."""
     min_cross: float = 50.0
     """Smallest angle (deg) between the approach and the cane: shears cut across it."""
     min_visible: float = 0.5
@@ -133,8 +137,12 @@ class SearchConfig(JsonFields):
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()
-        for name in ("azimuth_range", "elevation_range"):
+        for name in ("azimuth_range", "elevation_range", "rolls"):
             object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+        if not 1 <= len(self.rolls) <= 8 or not all(-180.0 <= r <= 180.0 for r in self.rolls):
+            raise InputError(
+                f"rolls must be 1 to 8 angles within [-180, 180] deg, got {self.rolls}"
+            )
         lo, hi = STANDOFF_RANGE
         if not (math.isfinite(self.standoff) and lo <= self.standoff <= hi):
             raise InputError(f"standoff must lie in [{lo}, {hi}] m, got {self.standoff}")

@@ -25,7 +25,7 @@ from vinetwin.errors import InputError, TwinError
 from vinetwin.files import atomic_write_text
 from vinetwin.plan.config import ProposeConfig
 from vinetwin.plan.rules import propose_cuts
-from vinetwin.plan.search import VineObstacles, search_pose
+from vinetwin.plan.search import VineObstacles, Wrist, search_pose
 from vinetwin.twin.model import CutPoint, Twin
 
 #: A proposal this close (m) to a cut point already in the twin is that cut.
@@ -138,6 +138,7 @@ def propose(
     if obstacles is None:
         mesh = twin.load_mesh()
         obstacles = VineObstacles(np.asarray(mesh.vertices), np.asarray(mesh.faces), twin.camera)
+    wrist = Wrist.for_arm(twin.T_flange_camera, cfg.search)
     settings = cfg.to_dict()
     ranked: dict[str, list[Any]] = {}
     for k, p in enumerate(proposals):
@@ -146,7 +147,7 @@ def propose(
         if any(np.linalg.norm(c.point - p.point) < SAME_CUT for c in twin.cut_points):
             result.already += 1
             continue
-        found = search_pose(obstacles, p.point, p.cane_axis, p.cane, p.radius, cfg.search)
+        found = search_pose(obstacles, p.point, p.cane_axis, p.cane, p.radius, cfg.search, wrist)
         cut = twin.add_cut_point(p.point, p.cane_axis, name=f"{p.label} {p.action}",
                                  source="proposal")  # fmt: skip
         rec: dict[str, Any] = {

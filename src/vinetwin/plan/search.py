@@ -1,13 +1,19 @@
 """A pruning pose for each cut, searched, not defaulted.
 
 For a cut point and its cane, approach directions are tried over a grid of azimuth and elevation
-(`SearchConfig`), each at the standoff with the cane across the image (roll 0), and kept only
+(`SearchConfig`), each at the standoff with the cane across the image (roll 0; then, for a cut
+no direction serves, the image turned over, which puts the wrist on the cane's other side), and
+kept only
 when:
 
 - **clear**: every part of the body (`BodyConfig`: the camera swept along its straight approach,
   the tool's capsule from the camera to the cut) stays `margin` away from the vine, the cane
-  being cut excepted within the jaw zone; the vine is the mesh's vertices and the centres of its
-  triangles (on a tube mesh of 2 mm edges a clearance is exact to about 1 mm);
+  being cut excepted within the jaw zone; with the twin's hand-eye transform (`Wrist`), so do
+  the arm's parts fixed to the camera (the tool mount, the camera's housing as the planner models
+  it, and link 7, which keeps the arm links' clearance, `ReachConfig.clearance`), swept along the
+  same approach: a pose whose wrist meets a cane is one no arm carrying this tool can take. The
+  vine is the mesh's vertices and the centres of its triangles (on a tube mesh of 2 mm edges a
+  clearance is exact to about 1 mm);
 - **seen**: the camera sees the cut point and at least `min_visible` of its cane within 5 cm
   (Open3D ray casting towards the cane's centre points);
 - **rich**: the camera sees at least `min_points` vine points in its depth range (every 16th
@@ -28,9 +34,11 @@ from typing import Any
 import numpy as np
 
 from vinetwin import _lazy
+from vinetwin.arm import wrist_parts
 from vinetwin.camera import CameraModel
 from vinetwin.frames import Array
 from vinetwin.plan.config import BodyConfig, SearchConfig
+from vinetwin.plan.job_config import ReachConfig
 from vinetwin.twin.poses import (
     Approach,
     default_approach,
@@ -50,7 +58,8 @@ class Candidate:
 
     approach: Approach
     clearance: float
-    """Smallest distance (m) from the body to the vine (negative: inside)."""
+    """Smallest distance (m) from the body to the vine (negative: inside); for link 7, its
+    distance less what it keeps beyond the margin (`Wrist`)."""
     visible: float = 0.0
     """Share of the cane within 5 cm of the cut the camera sees."""
     cut_seen: bool = False
@@ -61,6 +70,7 @@ class Candidate:
     def summary(self) -> dict[str, Any]:
         return {"azimuth_deg": round(math.degrees(self.approach.azimuth), 1),
                 "elevation_deg": round(math.degrees(self.approach.elevation), 1),
+                "roll_deg": round(math.degrees(self.approach.roll), 1),
                 "clearance_m": round(self.clearance, 4), "visible": round(self.visible, 3),
                 "cut_seen": self.cut_seen, "points": self.points}  # fmt: skip
 
@@ -112,6 +122,62 @@ class VineObstacles:
         return self.scene.cast_rays(o3d.core.Tensor(r))["t_hit"].numpy().astype(np.float64)
 
 
+#: Spacing (m) of the points that stand for the wrist's swept parts: each part's capsule is
+#: sampled along its axis and along the approach, and a vine point's distance to the nearest
+#: sample is its distance to the swept part to within 0.3 mm.
+WRIST_STEP = 0.005
+
+
+@dataclass(frozen=True)
+class Wrist:
+    """The arm's parts fixed to the camera, as the planner models them (`arm.wrist_parts`:
+    link 7, the tool mount, the camera's housing), swept along the approach: points on their
+    axes in the camera frame at the pruning pose (`WRIST_STEP` apart), each with the distance
+    (m) the vine must keep from it, its part's radius plus what the part keeps beyond the body's
+    margin (link 7: the arm links' clearance, `ReachConfig.clearance`, less the margin; the
+    hand's parts nothing more)."""
+
+    points: Array
+    need: Array
+
+    @classmethod
+    def for_arm(cls, T_flange_camera: Array, cfg: SearchConfig,
+                links_clearance: float | None = None) -> Wrist:  # fmt: skip
+        """From the hand-eye transform and the search's standoff and body; `links_clearance`
+        defaults to `ReachConfig`'s."""
+        keep = ReachConfig().clearance if links_clearance is None else links_clearance
+        T_cf = np.linalg.inv(np.asarray(T_flange_camera, float))
+        travel = cfg.standoff - cfg.body.tool_reach
+        sweep = np.linspace(0.0, travel, max(2, math.ceil(travel / WRIST_STEP) + 1))
+        pts, need = [], []
+        for part, p0, p1, r in wrist_parts(T_flange_camera):
+            a, b = (T_cf @ np.append(p0, 1.0))[:3], (T_cf @ np.append(p1, 1.0))[:3]
+            # along the axis at the sweep's own step: an axis along the approach then repeats
+            length, step = float(np.linalg.norm(b - a)), float(sweep[1])
+            u = (b - a) / length if length > 0 else np.zeros(3)
+            along = np.minimum(np.arange(math.ceil(length / step) + 1) * step, length)
+            axis = a + along[:, None] * u
+            grid = (axis[:, None, :] + sweep[None, :, None] * np.array([0.0, 0.0, 1.0])).reshape(
+                -1, 3
+            )
+            grid = np.unique(np.round(grid, 6), axis=0)
+            extra = max(keep - cfg.body.margin, 0.0) if part == "link7" else 0.0
+            pts.append(grid)
+            need.append(np.full(len(grid), r + extra))
+        return cls(np.concatenate(pts), np.concatenate(need))
+
+
+def wrist_clearances(obs: VineObstacles, Ts: Array, wrist: Wrist) -> Array:
+    """Each pose's (Ts: (D, 4, 4), camera in the vine frame) wrist clearance (m), capped at
+    `CLEARANCE_CAP`: the nearest vine point to each of the wrist's points (a KD-tree query)
+    less the distance that point needs."""
+    P = np.einsum("dij,kj->dki", Ts[:, :3, :3], wrist.points) + Ts[:, None, :3, 3]
+    bound = float(wrist.need.max()) + CLEARANCE_CAP
+    dist, _ = obs.tree.query(P.reshape(-1, 3), distance_upper_bound=bound, workers=-1)
+    gap = dist.reshape(P.shape[:2]) - wrist.need[None, :]
+    return np.minimum(gap.min(axis=1), CLEARANCE_CAP)
+
+
 def body_distance(Q: Array, standoff: float, body: BodyConfig, exempt: Array) -> Array:
     """Distance (m) from points Q (..., N, 3) in the camera frame at the pruning pose to the body
     (the swept camera and the tool's capsule; `exempt` points (N,) ignored by the tool); negative
@@ -129,9 +195,11 @@ def body_distance(Q: Array, standoff: float, body: BodyConfig, exempt: Array) ->
     return np.minimum(box, tool)
 
 
-def approaches(cane_axis: Array, cfg: SearchConfig, fine: int = 1) -> list[Approach]:
-    """The grid of approach directions across the cane (at least `min_cross` from it);
-    `fine` > 1 divides each step of the grid that many times."""
+def approaches(
+    cane_axis: Array, cfg: SearchConfig, fine: int = 1, roll: float = 0.0
+) -> list[Approach]:
+    """The grid of approach directions across the cane (at least `min_cross` from it), at image
+    roll `roll` (rad); `fine` > 1 divides each step of the grid that many times."""
     a0, a1 = np.radians(cfg.azimuth_range)
     e0, e1 = np.radians(cfg.elevation_range)
     out = []
@@ -139,7 +207,7 @@ def approaches(cane_axis: Array, cfg: SearchConfig, fine: int = 1) -> list[Appro
         for el in np.linspace(e0, e1, (cfg.elevations - 1) * fine + 1):
             d = direction_from_angles(float(az), float(el))
             if abs(float(d @ cane_axis)) <= math.cos(math.radians(cfg.min_cross)) + 1e-9:
-                out.append(Approach(cfg.standoff, float(az), float(el), 0.0))
+                out.append(Approach(cfg.standoff, float(az), float(el), roll))
     return out
 
 
@@ -149,17 +217,46 @@ def _dot3(A: Array, B: Array) -> Array:
 
 
 def _clearances(
-    obs: VineObstacles, cut: Array, axis: Array, aps: list[Approach], cfg: SearchConfig
+    obs: VineObstacles,
+    cut: Array,
+    axis: Array,
+    aps: list[Approach],
+    cfg: SearchConfig,
+    wrist: Wrist | None = None,
 ) -> Array:
     """Each approach's clearance (m), exact up to `CLEARANCE_CAP` (reported as the cap beyond):
-    only the vine points in a corridor around the body's axis are measured."""
+    only the vine points in a corridor around the body's axis are measured. With `wrist`, the
+    wrist is measured first, and a direction it already rules out (under the margin) keeps the
+    wrist's clearance without the camera's and tool's."""
     body = cfg.body
     w, h, d = body.camera_size
     corridor = max(math.hypot(w, h) / 2, body.tool_radius) + CLEARANCE_CAP
     idx = obs.tree.query_ball_point(cut, cfg.standoff + d + corridor)
+    T_all = np.stack([pruning_pose(cut, axis, ap) for ap in aps])
     out = np.full(len(aps), CLEARANCE_CAP)
-    if not idx:
+    if wrist is not None:
+        out = wrist_clearances(obs, T_all, wrist)
+    todo = np.nonzero(out >= body.margin)[0]
+    if not idx or not len(todo):
         return out
+    Q = obs.points[np.asarray(idx)]
+    exempt = np.linalg.norm(Q - cut, axis=1) < body.jaw_zone
+    Q2 = (Q * Q).sum(1)[:, None]
+    for j0 in range(0, len(todo), 64):
+        js = todo[j0 : j0 + 64]
+        Ts = T_all[js]
+        Z, O = Ts[:, :3, 2], Ts[:, :3, 3]
+        # (N, D) products over 3 coordinates, written out: no BLAS call, whose worker threads
+        # spin against a busy second core (a web-app propose once ran for minutes beside Chromium)
+        t = _dot3(Q, Z) - np.einsum("dj,dj->d", O, Z)  # along each optical axis
+        perp2 = Q2 - 2 * _dot3(Q, O) + (O * O).sum(1)[None] - t * t
+        near = (t > -d - corridor) & (t < cfg.standoff + corridor) & (perp2 < corridor**2)
+        for i in np.nonzero(near.any(axis=0))[0]:
+            k = near[:, i]
+            Qc = (Q[k] - O[i]) @ Ts[i, :3, :3]
+            dist = float(body_distance(Qc, cfg.standoff, body, exempt[k]).min())
+            out[js[i]] = min(out[js[i]], dist)
+    return out
     Q = obs.points[np.asarray(idx)]
     exempt = np.linalg.norm(Q - cut, axis=1) < body.jaw_zone
     Q2 = (Q * Q).sum(1)[:, None]
@@ -175,7 +272,7 @@ def _clearances(
             k = near[:, i]
             Qc = (Q[k] - O[i]) @ Ts[i, :3, :3]
             dist = float(body_distance(Qc, cfg.standoff, body, exempt[k]).min())
-            out[j0 + i] = min(dist, CLEARANCE_CAP)
+            out[j0 + i] = min(out[j0 + i], dist)
     return out
 
 
@@ -217,23 +314,27 @@ def search_pose(
     cane: Array,
     radius: float,
     cfg: SearchConfig,
+    wrist: Wrist | None = None,
 ) -> Found:
-    """The best pruning pose for one cut (see the module's docstring): the grid first, then,
-    when no direction of it passes, a grid three times as fine."""
+    """The best pruning pose for one cut (see the module's docstring): the grid at each of the
+    search's rolls in turn, then, when no direction of them passes, a grid three times as fine
+    at each roll. `wrist`: the arm's parts fixed
+    to the camera, checked too (`Wrist.for_arm` with the twin's hand-eye transform)."""
     cut = np.asarray(cut, dtype=np.float64)
     axis = np.asarray(cane_axis, dtype=np.float64)
     axis = axis / np.linalg.norm(axis)
     dflt = default_approach(axis, cfg.standoff)
-    default = Candidate(dflt, float(_clearances(obs, cut, axis, [dflt], cfg)[0]))
+    default = Candidate(dflt, float(_clearances(obs, cut, axis, [dflt], cfg, wrist)[0]))
     _sight(obs, default, cut, axis, cane, radius)
     found = Found(None, "", default, 0)
     for fine in (1, 3):
-        aps = approaches(axis, cfg, fine)
-        clear = _clearances(obs, cut, axis, aps, cfg)
-        tried = [Candidate(ap, float(cl)) for ap, cl in zip(aps, clear, strict=True)]
-        found = _choose(obs, tried, default, cut, axis, cane, radius, cfg)
-        if found.best is not None:
-            break
+        for roll in cfg.rolls:
+            aps = approaches(axis, cfg, fine, math.radians(roll))
+            clear = _clearances(obs, cut, axis, aps, cfg, wrist)
+            tried = [Candidate(ap, float(cl)) for ap, cl in zip(aps, clear, strict=True)]
+            found = _choose(obs, tried, default, cut, axis, cane, radius, cfg)
+            if found.best is not None:
+                return found
     return found
 
 
