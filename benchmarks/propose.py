@@ -5,7 +5,9 @@ export's chain), the time to propose, and:
 
 - **collisions**, checked apart from the search: points on the body's surfaces (`BodyConfig`:
   the swept camera box, the tool's capsule outside the jaw zone) against the mesh with Open3D's
-  distance query, at every proposed pose and at the same cuts' default approaches;
+  distance query, at every proposed pose and at the same cuts' default approaches; and the
+  arm's wrist (the planner's spheres on link 7, the mount and the housing, `arm.sphere_model`,
+  along the approach) against the clearance the planner asks of each (`wrist_short`);
 - **agreement under real-scan conditions** (`--agreement`): each vine scanned by the simulated
   scanner at the realistic quality, imported with `import_scan`, proposals on it against
   proposals on the true twin (moved into the scan's vine frame): the share of the true cuts with
@@ -43,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin import _lazy
+from vinetwin.arm import FLANGE_OFFSET, sphere_model
 from vinetwin.plan.config import (
     BodyConfig,
     ProposeConfig,
@@ -50,6 +53,7 @@ from vinetwin.plan.config import (
     SearchConfig,
     ServoCheckConfig,
 )
+from vinetwin.plan.job_config import ReachConfig
 from vinetwin.plan.proposer import propose
 from vinetwin.sim.servo_check import propose_checked
 from vinetwin.twin.model import Twin
@@ -116,12 +120,31 @@ class Checker:
                                  o3d.core.Tensor(np.asarray(m.faces, np.uint32)))  # fmt: skip
         self.B = body_points(cfg.standoff, cfg.body)
         self.tensor = o3d.core.Tensor
+        # the planner's own spheres for the arm's parts fixed to the camera (link 7, mount,
+        # housing), each with the clearance the planner asks of it, along the approach
+        T_fc = np.asarray(twin.T_flange_camera, float)
+        s = sphere_model(T_fc, T_fc[:3, 3], 0.01)
+        use = np.isin(s.frame, (7, 8)) & (np.asarray(s.part) != "tool")
+        c = s.centre[use].copy()
+        c[s.frame[use] == 7, 2] -= FLANGE_OFFSET
+        cam = (c - T_fc[:3, 3]) @ T_fc[:3, :3]
+        steps = np.linspace(0.0, cfg.standoff - cfg.body.tool_reach, 17)
+        self.W = (cam[None] + steps[:, None, None] * [0.0, 0.0, 1.0]).reshape(-1, 3)
+        keep = np.where(s.frame[use] == 7, ReachConfig().clearance, cfg.body.margin)
+        self.W_need = np.tile(s.radius[use] + keep, len(steps))
 
     def distance(self, T: np.ndarray) -> float:
         W = (self.B @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
         d = self.scene.compute_distance(self.tensor(W)).numpy()
         inside = self.scene.compute_occupancy(self.tensor(W)).numpy() > 0.5
         return float(np.where(inside, -d, d).min())
+
+    def wrist(self, T: np.ndarray) -> float:
+        """How far (m) the wrist's spheres stay beyond the clearance each must keep (negative:
+        short of it), the mesh's exact surface."""
+        W = (self.W @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        d = self.scene.compute_distance(self.tensor(W)).numpy()
+        return float((d - self.W_need).min())
 
 
 def reference_points(twin: Twin, pose_ids: list[str]) -> list[int]:
@@ -150,7 +173,7 @@ def run_plant(name: str, rule: str, work: Path, check_profile: str = "") -> dict
     secs = time.perf_counter() - t0
     twin = Twin.load(root)
     check = Checker(twin, cfg.search)
-    dists, dflt_dists, posed = [], [], []
+    dists, dflt_dists, posed, wrists = [], [], [], []
     default_bad = fixed = 0
     for r in result.rows:
         cut = twin.cut_point(r["id"])
@@ -162,7 +185,9 @@ def run_plant(name: str, rule: str, work: Path, check_profile: str = "") -> dict
         default_bad += bad
         if "pose_id" in r:
             posed.append(r["pose_id"])
-            dists.append(check.distance(np.asarray(twin.pose(r["pose_id"]).T_vine_camera)))
+            Tp = np.asarray(twin.pose(r["pose_id"]).T_vine_camera)
+            dists.append(check.distance(Tp))
+            wrists.append(check.wrist(Tp))
             fixed += bad
     refs = reference_points(twin, posed)
     clear = [r["search"]["clearance_m"] for r in result.rows if "search" in r]
@@ -174,6 +199,8 @@ def run_plant(name: str, rule: str, work: Path, check_profile: str = "") -> dict
         "median_clearance_mm": round(1000 * float(np.median(clear)), 2) if clear else None,
         "collisions": int(sum(d <= 0 for d in dists)),
         "min_body_distance_mm": round(1000 * min(dists), 2) if dists else None,
+        "wrist_short": int(sum(w < 0 for w in wrists)),
+        "wrist_min_spare_mm": round(1000 * min(wrists), 2) if wrists else None,
         "median_reference_points": int(np.median(refs)) if refs else 0,
         "min_reference_points": int(min(refs)) if refs else 0,
         "default_colliding": int(sum(d <= 0 for d in dflt_dists)),
@@ -443,9 +470,9 @@ def main() -> None:
     try:
         if a.rules:
             print("| plant | rule | cuts (shorten/remove) | posed | no pose | s | median clearance mm "
-                  "| collisions (min mm) | ref points median (min) | default poses colliding / bad "
-                  "| bad fixed |")  # fmt: skip
-            print("|---|---|---|---|---|---|---|---|---|---|---|")
+                  "| collisions (min mm) | wrist short of its clearance (min spare mm) "
+                  "| ref points median (min) | default poses colliding / bad | bad fixed |")  # fmt: skip
+            print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         for name in a.plants:
             for rule in a.rules:
                 r = run_plant(name, rule, work, a.check_profile)
@@ -456,6 +483,7 @@ def main() -> None:
                 print(f"| {name} | {rule} | {r['proposed']} ({r['shorten']}/{r['remove']}) "
                       f"| {r['with_pose']} | {r['without_pose']} | {r['seconds']:.1f} "
                       f"| {r['median_clearance_mm']} | {r['collisions']} ({r['min_body_distance_mm']}) "
+                      f"| {r['wrist_short']} ({r['wrist_min_spare_mm']}) "
                       f"| {r['median_reference_points']} ({r['min_reference_points']}) "
                       f"| {r['default_colliding']} / {r['default_bad']} | {r['default_bad_fixed']} |",
                       flush=True)  # fmt: skip

@@ -188,6 +188,43 @@ def test_a_transit_goes_around_a_cane_in_the_way() -> None:
                      (arm.vmax, arm.amax, arm.jmax), cfg)  # fmt: skip
 
 
+def test_a_transit_search_that_times_out_is_tried_again_with_another_seed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A search that finds nothing is repeated `attempts` times, each with its own seed; the
+    reason names how many searches failed, and one that succeeds is the transit's path."""
+    from vinetwin.plan import transit as T
+
+    arm = _arm()
+    q0 = np.array([-0.9, 0.3, 0.0, -1.8, 0.0, 2.1, 0.785])
+    q1 = np.array([0.9, 0.3, 0.0, -1.8, 0.0, 2.1, 0.785])
+    mid = (q0 + q1) / 2 + np.array([0, -0.4, 0, 0, 0, 0, 0])
+
+    def valid(q: np.ndarray) -> bool:  # the straight move is blocked half way
+        return float(np.linalg.norm(q - (q0 + q1) / 2)) > 0.2
+
+    seeds: list[int] = []
+
+    def search(a, b, check, lo, hi, cfg, seed):  # noqa: ANN001, ANN202
+        seeds.append(seed)
+        if len(seeds) < cfg.attempts + 1 and seed < 12:
+            raise T.PlanningFailed(f"RRTConnect found no collision-free path in {cfg.timeout} s")
+        return [a, mid, b]
+
+    monkeypatch.setattr(T, "_ompl_path", search)
+    limits = (arm.vmax, arm.amax, arm.jmax)
+    with pytest.raises(PlanningFailed, match=r"in 1.0 s \(2 searches\)"):
+        plan_transit(q0, q1, valid, arm.lower, arm.upper, limits, TransitConfig(), seed=10)
+    assert seeds == [10, 11]
+    seeds.clear()  # the second search of three finds it
+    tr = plan_transit(q0, q1, valid, arm.lower, arm.upper, limits, TransitConfig(attempts=3),
+                      seed=11)  # fmt: skip
+    assert seeds == [11, 12] and np.allclose(tr.waypoints[1], mid)
+    for bad in (0, 11, 1.5, True):
+        with pytest.raises(InputError, match="attempts"):
+            TransitConfig(attempts=bad)  # type: ignore[arg-type]
+
+
 def test_a_transit_leaves_a_start_inside_the_margin_without_contact() -> None:
     """An arm the servo brought within the links' 2 cm margin of a cane (8-12 mm off): the
     transit is refused with the plain check, and with the contact check as its escape it leaves

@@ -83,6 +83,8 @@ class BodyConfig(JsonFields):
       close on and is not an obstacle.
     - The tool's blade is `tool_reach` ahead of the camera: the camera stops that far from the
       cut point.
+    - The arm's wrist (link 7, the tool mount, the camera's housing as the planner models
+      them) is not set here: it comes from the twin's hand-eye transform (`search.Wrist`).
     """
 
     camera_size: tuple[float, float, float] = (0.042, 0.042, 0.023)

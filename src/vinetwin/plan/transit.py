@@ -138,7 +138,8 @@ def plan_transit(
     kept when it is free, else the first chain of `via` waypoints (backing off along the
     approach, for instance; each chain's waypoints alone tried before the whole chain) whose
     straight segments are free; else OMPL's `cfg.planner`
-    searches for `cfg.timeout` s and its path is simplified. An end that fails `valid` (an arm
+    searches for `cfg.timeout` s (up to `cfg.attempts` times, each with its own seed) and its
+    path is simplified. An end that fails `valid` (an arm
     the servo's correction brought within a margin of a cane) is refused unless it passes
     `escape` (a check with a small clearance instead of the margins); then the path may stay
     under the margins, never closer than that, within `ESCAPE` of that end, to leave it or to
@@ -188,9 +189,18 @@ def plan_transit(
             path, how = cand, "via" if k else "straight"
             break
     if path is None:
-        path = _ompl_path(q0, q1, counted, lower, upper, cfg, seed)
+        used = seed
+        for attempt in range(cfg.attempts):
+            used = seed + attempt
+            try:
+                path = _ompl_path(q0, q1, counted, lower, upper, cfg, used)
+                break
+            except PlanningFailed as exc:
+                if attempt + 1 == cfg.attempts:
+                    raise PlanningFailed(f"{exc} ({cfg.attempts} searches)") from None
+        assert path is not None
         if not path_ok(path, fine):  # planned again, checking as finely as it is judged
-            path = _ompl_path(q0, q1, counted, lower, upper, replace(cfg, resolution=fine), seed)
+            path = _ompl_path(q0, q1, counted, lower, upper, replace(cfg, resolution=fine), used)
             if not path_ok(path, fine):
                 raise PlanningFailed("the planned path collides between its checks")
     scale = cfg.speed_scale
