@@ -9,6 +9,7 @@ import json
 import re
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -205,7 +206,8 @@ def test_a_transit_search_that_times_out_is_tried_again_with_another_seed(
 
     seeds: list[int] = []
 
-    def search(a, b, check, lo, hi, cfg, seed):  # noqa: ANN001, ANN202
+    def search(a: Any, b: Any, check: Any, lo: Any, hi: Any, cfg: TransitConfig,
+               seed: int) -> list[Any]:  # fmt: skip
         seeds.append(seed)
         if len(seeds) < cfg.attempts + 1 and seed < 12:
             raise T.PlanningFailed(f"RRTConnect found no collision-free path in {cfg.timeout} s")
