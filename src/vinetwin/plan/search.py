@@ -139,6 +139,8 @@ class Wrist:
 
     points: Array
     need: Array
+    links: float
+    """The clearance (m) link 7 keeps from the vine."""
 
     @classmethod
     def for_arm(cls, T_flange_camera: Array, cfg: SearchConfig,
@@ -164,7 +166,7 @@ class Wrist:
             extra = max(keep - cfg.body.margin, 0.0) if part == "link7" else 0.0
             pts.append(grid)
             need.append(np.full(len(grid), r + extra))
-        return cls(np.concatenate(pts), np.concatenate(need))
+        return cls(np.concatenate(pts), np.concatenate(need), keep)
 
 
 def wrist_clearances(obs: VineObstacles, Ts: Array, wrist: Wrist) -> Array:
@@ -332,21 +334,27 @@ def search_pose(
             aps = approaches(axis, cfg, fine, math.radians(roll))
             clear = _clearances(obs, cut, axis, aps, cfg, wrist)
             tried = [Candidate(ap, float(cl)) for ap, cl in zip(aps, clear, strict=True)]
-            found = _choose(obs, tried, default, cut, axis, cane, radius, cfg)
+            found = _choose(obs, tried, default, cut, axis, cane, radius, cfg, wrist)
             if found.best is not None:
                 return found
     return found
 
 
 def _choose(obs: VineObstacles, tried: list[Candidate], default: Candidate, cut: Array,
-            axis: Array, cane: Array, radius: float, cfg: SearchConfig) -> Found:  # fmt: skip
+            axis: Array, cane: Array, radius: float, cfg: SearchConfig,
+            wrist: Wrist | None = None) -> Found:  # fmt: skip
     """The best of the directions tried, or why none passes."""
-    ok = [c for c in tried if c.clearance >= cfg.body.margin]
+    m = cfg.body.margin
+    ok = [c for c in tried if c.clearance >= m]
     if not ok:
         b = max(tried, key=lambda c: c.clearance) if tried else default
-        return Found(None, f"no approach keeps {cfg.body.margin * 1000:.0f} mm from the vine "
-                           f"(best {b.clearance * 1000:.1f} mm of {len(tried)} tried)",
-                     default, len(tried))  # fmt: skip
+        if wrist is None:
+            why = f"no approach keeps {m * 1000:.0f} mm from the vine (best {b.clearance * 1000:.1f} mm"
+        else:  # a clearance counts link 7's beyond the margin: say what is short
+            why = (f"no approach keeps the camera and tool {m * 1000:.0f} mm and the arm's link 7 "
+                   f"{wrist.links * 1000:.0f} mm from the vine (the best {(m - b.clearance) * 1000:.1f} "
+                   "mm short,")  # fmt: skip
+        return Found(None, f"{why} of {len(tried)} tried)", default, len(tried))
     d0 = direction_from_angles(default.approach.azimuth, default.approach.elevation)
     for c in ok:
         _sight(obs, c, cut, axis, cane, radius)
