@@ -302,6 +302,40 @@ def test_unreachable_cuts_are_named(tmp_path: Path, sample_twin_dir: Path) -> No
     assert plan.stops
 
 
+def test_no_stop_is_chosen_where_the_folded_arm_would_touch_the_vine(
+    tmp_path: Path, sample_twin_dir: Path
+) -> None:
+    """The platform arrives and leaves with the arm folded: where the folded arm would touch
+    the vine at the stop the plan chose (a hanging cane there, as the planner's check says),
+    that stop is ruled out and the plan takes others (before, the job chose it and then skipped
+    its cuts when it drove there)."""
+    from vinetwin.arm import STOW
+
+    twin = _twin_with(tmp_path, sample_twin_dir, ["p1", "p2", "p3"])
+    cfg = JobConfig(platform=PlatformConfig(offset=0.55, height=0.45))
+    plan = plan_vine(twin, Planner.for_twin(twin, cfg))
+    assert plan.stops and not plan.unreachable
+    s0 = plan.stops[0]
+    planner = Planner.for_twin(twin, cfg)
+    clear = planner.valid
+    folded_at: list[float] = []
+
+    def valid(q: np.ndarray) -> bool:  # the folded arm meets a cane at s0, and only there
+        x = float(planner.collider.T_vine_base[0, 3])
+        if np.allclose(q, STOW):
+            folded_at.append(x)
+            if abs(x - s0) < 1e-9:
+                return False
+        return clear(q)
+
+    planner.valid = valid  # type: ignore[method-assign]
+    plan2 = plan_vine(twin, planner)
+    assert s0 in folded_at and s0 not in plan2.stops
+    assert set(plan2.stops) <= set(folded_at)  # every stop chosen had its folded arm checked
+    done = {r.pose for rs in plan2.order.values() for r in rs}
+    assert done | set(plan2.unreachable) == {"p1", "p2", "p3"} and done
+
+
 def test_no_poses_and_bad_settings_are_refused(tmp_path: Path, sample_twin_dir: Path) -> None:
     from vinetwin.sim.prune import PruneConfig, prune_twin
 

@@ -78,6 +78,11 @@ class Planner:
         return self.collider.arm_clear(self.arm, q, ESCAPE_CLEARANCE, ESCAPE_CLEARANCE)
 
 
+#: Why a stop is not used: the platform drives with the arm folded (`STOW`), and at this stop
+#: the folded arm would touch the vine.
+STOW_BLOCKED = "the folded arm would touch the vine at the stop"
+
+
 def plan_vine(
     twin: Twin, planner: Planner, pose_ids: list[str] | None = None, seed: int = 0
 ) -> VinePlan:
@@ -108,6 +113,7 @@ def plan_vine(
     reach: dict[str, dict[float, CutReach]] = {}
     reasons: dict[str, dict[str, int]] = {}
     where: dict[str, tuple[Array, Array]] = {}
+    stowed: dict[float, bool] = {}  # whether the folded arm is clear of the vine at a stop
     for pose in poses:
         cut = twin.cut_point(pose.cut_point).point
         T = np.asarray(pose.T_vine_camera, float)
@@ -123,6 +129,11 @@ def plan_vine(
             T_vine_base = stop_pose(s, cfg.platform)
             planner.collider.at_stop(T_vine_base)
             plan.tried += 1
+            if s not in stowed:
+                stowed[s] = planner.valid(STOW)
+            if not stowed[s]:  # the platform arrives, and leaves, with the arm folded
+                why[STOW_BLOCKED] = why.get(STOW_BLOCKED, 0) + 1
+                continue
             r = reach_cut(
                 planner.arm, planner.collider, T, cut, T_vine_base, cfg, planner.body.margin,
                 planner.body.jaw_zone, warm, rng, approach=False,

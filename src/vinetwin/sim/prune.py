@@ -362,11 +362,9 @@ class _Job:
         cfg, arm = self.cfg, self.planner.arm
         t0 = time.perf_counter()
         why = ""
+        once = replace(cfg.job.transit, attempts=1)  # its own retry is the longer search
         for k, transit in enumerate(
-            (
-                cfg.job.transit,
-                replace(cfg.job.transit, timeout=STOW_RETRY * cfg.job.transit.timeout),
-            )
+            (once, replace(once, timeout=STOW_RETRY * cfg.job.transit.timeout))
         ):
             try:
                 tr = plan_transit(q, STOW, self.planner.valid, arm.lower, arm.upper, self._limits(),
