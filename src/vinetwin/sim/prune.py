@@ -444,13 +444,15 @@ class _Job:
             return _skipped(r.cut, r.pose, r.stop, "the believed pose is out of reach", cut), q, 0.0
         q = np.clip(q, arm.lower, arm.upper)  # a lagging arm may sit a hair past a limit
         via = self._via(q, q_goal, B)
+        t0 = time.perf_counter()
         try:
             tr = plan_transit(q, q_goal, self.planner.valid, arm.lower, arm.upper,
                               self._limits(), cfg.job.transit, cfg.seed, via,
                               self.planner.escape_clear)  # fmt: skip
-        except PlanningFailed as exc:
+        except PlanningFailed as exc:  # the searches' compute still counts as planning
             self.track.event(f"{r.cut} skipped: transit: {exc}", 1)
-            return _skipped(r.cut, r.pose, r.stop, f"transit: {exc}", cut), q, 0.0
+            skipped = _skipped(r.cut, r.pose, r.stop, f"transit: {exc}", cut)
+            return skipped, q, time.perf_counter() - t0
         phases["planning"] = tr.planning_s
         phases["transit"] = tr.duration
         self.transits.append({"cut": r.cut, "how": tr.how, "planning_s": tr.planning_s,
