@@ -3,8 +3,7 @@
 For a cut point and its cane, approach directions are tried over a grid of azimuth and elevation
 (`SearchConfig`), each at the standoff with the cane across the image (roll 0; then, for a cut
 no direction serves, the image turned over, which puts the wrist on the cane's other side), and
-kept only
-when:
+kept only when:
 
 - **clear**: every part of the body (`BodyConfig`: the camera swept along its straight approach,
   the tool's capsule from the camera to the cut) stays `margin` away from the vine, the cane
@@ -259,23 +258,6 @@ def _clearances(
             dist = float(body_distance(Qc, cfg.standoff, body, exempt[k]).min())
             out[js[i]] = min(out[js[i]], dist)
     return out
-    Q = obs.points[np.asarray(idx)]
-    exempt = np.linalg.norm(Q - cut, axis=1) < body.jaw_zone
-    Q2 = (Q * Q).sum(1)[:, None]
-    for j0 in range(0, len(aps), 64):
-        Ts = np.stack([pruning_pose(cut, axis, ap) for ap in aps[j0 : j0 + 64]])
-        Z, O = Ts[:, :3, 2], Ts[:, :3, 3]
-        # (N, D) products over 3 coordinates, written out: no BLAS call, whose worker threads
-        # spin against a busy second core (a web-app propose once ran for minutes beside Chromium)
-        t = _dot3(Q, Z) - np.einsum("dj,dj->d", O, Z)  # along each optical axis
-        perp2 = Q2 - 2 * _dot3(Q, O) + (O * O).sum(1)[None] - t * t
-        near = (t > -d - corridor) & (t < cfg.standoff + corridor) & (perp2 < corridor**2)
-        for i in np.nonzero(near.any(axis=0))[0]:
-            k = near[:, i]
-            Qc = (Q[k] - O[i]) @ Ts[i, :3, :3]
-            dist = float(body_distance(Qc, cfg.standoff, body, exempt[k]).min())
-            out[j0 + i] = min(out[j0 + i], dist)
-    return out
 
 
 def _sight(obs: VineObstacles, c: Candidate, cut: Array, axis: Array, cane: Array,
@@ -320,8 +302,8 @@ def search_pose(
 ) -> Found:
     """The best pruning pose for one cut (see the module's docstring): the grid at each of the
     search's rolls in turn, then, when no direction of them passes, a grid three times as fine
-    at each roll. `wrist`: the arm's parts fixed
-    to the camera, checked too (`Wrist.for_arm` with the twin's hand-eye transform)."""
+    at each roll. `wrist`: the arm's parts fixed to the camera, checked too (`Wrist.for_arm`
+    with the twin's hand-eye transform)."""
     cut = np.asarray(cut, dtype=np.float64)
     axis = np.asarray(cane_axis, dtype=np.float64)
     axis = axis / np.linalg.norm(axis)
