@@ -6,7 +6,7 @@ export's chain), the time to propose, and:
 - **collisions**, checked apart from the search: points on the body's surfaces (`BodyConfig`:
   the swept camera box, the tool's capsule outside the jaw zone) against the mesh with Open3D's
   distance query, at every proposed pose and at the same cuts' default approaches; and the
-  arm's wrist (the planner's spheres on link 7, the mount and the housing, `arm.sphere_model`,
+  arm's wrist (the planner's spheres on link 7, the mount and the housing, `arm.camera_fixed_spheres`,
   along the approach) against the clearance the planner asks of each (`wrist_short`);
 - **agreement under real-scan conditions** (`--agreement`): each vine scanned by the simulated
   scanner at the realistic quality, imported with `import_scan`, proposals on it against
@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from vinetwin import _lazy
-from vinetwin.arm import FLANGE_OFFSET, sphere_model
+from vinetwin.arm import camera_fixed_spheres
 from vinetwin.plan.config import (
     BodyConfig,
     ProposeConfig,
@@ -122,16 +122,11 @@ class Checker:
         self.tensor = o3d.core.Tensor
         # the planner's own spheres for the arm's parts fixed to the camera (link 7, mount,
         # housing), each with the clearance the planner asks of it, along the approach
-        T_fc = np.asarray(twin.T_flange_camera, float)
-        s = sphere_model(T_fc, T_fc[:3, 3], 0.01)
-        use = np.isin(s.frame, (7, 8)) & (np.asarray(s.part) != "tool")
-        c = s.centre[use].copy()
-        c[s.frame[use] == 7, 2] -= FLANGE_OFFSET
-        cam = (c - T_fc[:3, 3]) @ T_fc[:3, :3]
+        cam, radius, part = camera_fixed_spheres(twin.T_flange_camera)
         steps = np.linspace(0.0, cfg.standoff - cfg.body.tool_reach, 17)
         self.W = (cam[None] + steps[:, None, None] * [0.0, 0.0, 1.0]).reshape(-1, 3)
-        keep = np.where(s.frame[use] == 7, ReachConfig().clearance, cfg.body.margin)
-        self.W_need = np.tile(s.radius[use] + keep, len(steps))
+        keep = np.where(np.asarray(part) == "link7", ReachConfig().clearance, cfg.body.margin)
+        self.W_need = np.tile(radius + keep, len(steps))
 
     def distance(self, T: np.ndarray) -> float:
         W = (self.B @ T[:3, :3].T + T[:3, 3]).astype(np.float32)

@@ -333,7 +333,7 @@ def test_the_search_keeps_the_arms_wrist_off_the_vine(vine_twin: Twin) -> None:
     vertices sphere by sphere."""
     from scipy.spatial import cKDTree
 
-    from vinetwin.arm import FLANGE_OFFSET, sphere_model
+    from vinetwin.arm import camera_fixed_spheres
     from vinetwin.plan.job_config import ReachConfig
     from vinetwin.plan.search import Wrist, _clearances
 
@@ -341,19 +341,15 @@ def test_the_search_keeps_the_arms_wrist_off_the_vine(vine_twin: Twin) -> None:
     T_fc = vine_twin.T_flange_camera
     wrist = Wrist.for_arm(T_fc, cfg)
     travel = cfg.standoff - cfg.body.tool_reach
-    s = sphere_model(T_fc, T_fc[:3, 3], 0.01)
-    use = np.isin(s.frame, (7, 8)) & (np.asarray(s.part) != "tool")
-    centres = s.centre[use].copy()
-    centres[s.frame[use] == 7, 2] -= FLANGE_OFFSET
-    cam = (centres - T_fc[:3, 3]) @ T_fc[:3, :3]
+    cam, radius, part = camera_fixed_spheres(T_fc)
     # for points anywhere around the wrist, the wrist's gap is at most the planner's spheres'
     # (each swept exactly along the approach) plus 0.3 mm: as conservative as the planner
-    keep = np.where(s.frame[use] == 7, ReachConfig().clearance, cfg.body.margin)
+    keep = np.where(np.asarray(part) == "link7", ReachConfig().clearance, cfg.body.margin)
     rng = np.random.default_rng(0)
     Q = rng.uniform([-0.25, -0.2, -0.3], [0.15, 0.2, 0.2], (4000, 3))
     t = np.clip(Q[:, None, 2] - cam[None, :, 2], 0.0, travel)
     seg = np.linalg.norm(Q[:, None] - cam[None] - t[..., None] * [0, 0, 1], axis=2)
-    planner = (seg - s.radius[use] - keep + cfg.body.margin).min(axis=1)
+    planner = (seg - radius - keep + cfg.body.margin).min(axis=1)
     ours = (np.linalg.norm(Q[:, None] - wrist.points[None], axis=2) - wrist.need).min(axis=1)
     assert (ours <= planner + 3e-4).all()
     assert np.median(planner - ours) < 1e-3  # and not much more
@@ -379,5 +375,5 @@ def test_the_search_keeps_the_arms_wrist_off_the_vine(vine_twin: Twin) -> None:
     tree = cKDTree(np.asarray(twin.load_mesh().vertices))
     for z in np.linspace(0.0, travel, 9):
         world = (cam + [0, 0, z]) @ Tb[:3, :3].T + Tb[:3, 3]
-        gap = tree.query(world)[0] - s.radius[use] - keep
+        gap = tree.query(world)[0] - radius - keep
         assert gap.min() > -1.5e-3  # vertices of a 3 mm mesh: the surface within 1.5 mm

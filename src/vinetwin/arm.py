@@ -240,6 +240,19 @@ def sphere_model(T_flange_camera: Any, blade: Any, tool_radius: float) -> Sphere
     return Spheres(np.asarray(frames), np.asarray(centres), np.asarray(radii), tuple(parts))
 
 
+def camera_fixed_spheres(T_flange_camera: Any) -> tuple[Array, Array, tuple[str, ...]]:
+    """The planner's spheres (`sphere_model`) on the parts fixed to the camera, the tool
+    excepted: link 7, the tool mount and the housing; their centres in the camera frame, their
+    radii and parts."""
+    T_fc = np.asarray(T_flange_camera, float)
+    s = sphere_model(T_fc, T_fc[:3, 3], 0.01)  # its tool spheres are not used
+    use = np.isin(s.frame, (7, 8)) & (np.asarray(s.part) != "tool")
+    c = s.centre[use].copy()
+    c[s.frame[use] == 7, 2] -= FLANGE_OFFSET  # link 7's frame: the flange's, less its offset
+    cam = (c - T_fc[:3, 3]) @ T_fc[:3, :3]
+    return cam, s.radius[use].copy(), tuple(np.asarray(s.part)[use].tolist())
+
+
 class ArmModel:
     """The Panda with its camera and tool, on a base pose: forward kinematics, its collision
     spheres and inverse kinematics for the camera (or any flange-fixed frame)."""
