@@ -2,7 +2,7 @@
 
 Fusion uses Open3D's VoxelBlockGrid (tensor TSDF, CPU) at 1-2 mm voxels with the D405's working range;
 the mesh comes out by marching cubes, then loses its small floating components (fusion debris
-from flying pixels), is optionally smoothed (Taubin) and decimated to a target size.
+from flying pixels: few triangles and a few millimetres across; `drop_debris`), is optionally smoothed (Taubin) and decimated to a target size.
 
 Evaluation samples both meshes and reports the Chamfer distance and the precision, recall and
 F-score at given distances (2 mm and 5 mm by default). The ground truth is restricted to the part
@@ -36,6 +36,29 @@ class FusionResult:
     frames_skipped: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
     removed_components: int = 0
+
+
+def drop_debris(mesh: Any, cfg: FusionConfig) -> int:
+    """Removes from an Open3D mesh, in place, its connected components with fewer triangles than
+    `cfg.min_component` of the largest's that also span less than `cfg.min_component_extent`
+    (their bounding box's diagonal); returns how many it removed."""
+    if not len(mesh.triangles):
+        return 0
+    clusters, counts, _ = mesh.cluster_connected_triangles()
+    clusters = np.asarray(clusters)
+    counts = np.asarray(counts)
+    small = counts < cfg.min_component * counts.max()
+    if small.any() and cfg.min_component_extent > 0:
+        corners = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)]  # (T, 3, 3)
+        lo = np.full((len(counts), 3), np.inf)
+        hi = np.full((len(counts), 3), -np.inf)
+        np.minimum.at(lo, clusters, corners.min(axis=1))
+        np.maximum.at(hi, clusters, corners.max(axis=1))
+        small &= np.linalg.norm(hi - lo, axis=1) < cfg.min_component_extent
+    if small.any():
+        mesh.remove_triangles_by_mask(small[clusters])
+        mesh.remove_unreferenced_vertices()
+    return int(small.sum())
 
 
 def fuse(
@@ -104,15 +127,7 @@ def fuse(
     if not used:
         raise CaptureError(f"{capture.root}: no frame could be fused ({len(skipped)} skipped)")
     mesh = vbg.extract_triangle_mesh().to_legacy()
-    removed = 0
-    if len(mesh.triangles):
-        clusters, counts, _ = mesh.cluster_connected_triangles()
-        clusters = np.asarray(clusters)
-        counts = np.asarray(counts)
-        small = counts < cfg.min_component * counts.max()
-        removed = int(small.sum())
-        mesh.remove_triangles_by_mask(small[clusters])
-        mesh.remove_unreferenced_vertices()
+    removed = drop_debris(mesh, cfg)
     if cfg.smooth_iterations > 0:
         mesh = mesh.filter_smooth_taubin(cfg.smooth_iterations)
     if cfg.target_triangles > 0 and len(mesh.triangles) > cfg.target_triangles:

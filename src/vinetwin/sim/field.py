@@ -216,6 +216,7 @@ def reconstructed_twin(
     poses are carried across in the vine frame (the capture's poses are in that frame, so the
     reconstruction is too): the reference is rendered at the same pose, from the rebuilt mesh.
     Cached under `cache` by its inputs; returns (mesh path, evaluation)."""
+    from vinetwin.reconstruct.config import FusionConfig
     from vinetwin.reconstruct.pipeline import ReconstructConfig, reconstruct
     from vinetwin.reconstruct.synthetic import synthetic_capture
 
@@ -225,6 +226,7 @@ def reconstructed_twin(
         "noise": [profile.twin_pose_noise_translation, profile.twin_pose_noise_rotation],
         "voxel": profile.twin_voxel,
         "seed": seed,
+        "debris": [FusionConfig().min_component, FusionConfig().min_component_extent],
         **({"trajectory": profile.twin_trajectory} if profile.twin_trajectory != "grid" else {}),
     }
     digest = json_sha256(key)[:16]
