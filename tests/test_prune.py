@@ -5,6 +5,7 @@ whichever executor ran it."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 import shutil
@@ -520,3 +521,44 @@ def test_stow_and_home_are_within_limits() -> None:
     # the folded arm reaches no more than 0.25 m ahead of its base
     c = arm.sphere_centres(STOW)
     assert float((c[:, 0] + arm.spheres.radius).max()) < 0.25
+
+
+def test_an_arm_that_finds_no_way_out_retraces_the_way_it_came(
+    tmp_path: Path, sample_twin_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Among hanging canes the planner may find no path from the last cut back to the folded
+    arm (on hydroshoot's gdc_can1_grapevine this stopped the job). The way in is known: the
+    stow then follows this stop's transits' waypoints backwards, each straight segment checked
+    again; with no way in recorded, the job stops with the planner's reason."""
+    from vinetwin.plan import transit as T
+    from vinetwin.sim.prune import PruneConfig, _Job
+
+    twin = _twin_with(tmp_path, sample_twin_dir, ["p1"])
+    job = _Job(twin, PruneConfig(sim="kinematic"))
+    try:
+        e0, e2 = np.eye(7)[0], np.eye(7)[2]
+        w1, w2, q = STOW + 0.5 * e2, STOW + e0 + 0.5 * e2, STOW + e0
+        path = [STOW, w1, w2, q]  # the way in, bent: the straight way back is blocked
+
+        def valid(x: np.ndarray) -> bool:  # free within 0.05 rad of the way in, nowhere else
+            for a, b in itertools.pairwise(path):
+                s = np.clip(np.dot(x - a, b - a) / np.dot(b - a, b - a), 0.0, 1.0)
+                if np.linalg.norm(x - (a + s * (b - a))) < 0.05:
+                    return True
+            return False
+
+        def search(*args: Any, **kwargs: Any) -> list[Any]:
+            raise T.PlanningFailed("RRTConnect found no collision-free path in 1.0 s")
+
+        job.planner.valid = valid  # type: ignore[method-assign]
+        monkeypatch.setattr(T, "_ompl_path", search)
+        B = np.eye(4)
+        job.trail = [STOW]  # nothing recorded: the planner's reason
+        why, _ = job._stow(q, B)
+        assert isinstance(why, str) and "no collision-free path" in why
+        job.trail = [STOW, STOW, w1, w2]  # the transit's waypoints, start to end
+        tr, _ = job._stow(q, B)
+        assert not isinstance(tr, str) and tr.how == "via"
+        assert np.allclose(np.array(tr.waypoints), [q, w2, w1, STOW, STOW])
+    finally:
+        job.close()

@@ -187,6 +187,8 @@ class _Job:
         self.contacts = _Contacts()
         self.track = Track()
         self.transits: list[dict[str, Any]] = []
+        #: the joints this stop's transits passed through, in order (`_stow` may retrace them)
+        self.trail: list[Array] = []
         self.rng = np.random.default_rng([cfg.seed, 45])
         base = SimConfig()
         from vinetwin.sim.field import registration_error
@@ -271,6 +273,7 @@ class _Job:
                 self._place_vine(B)
                 self.arm.set_q(STOW)
             q = STOW.copy()
+            self.trail = [q]
             for r in plan.order[x]:
                 out, q, pl = self._cut(r, B, q)
                 out["time_s"] += platform
@@ -356,20 +359,23 @@ class _Job:
 
     def _stow(self, q: Array, B: Array) -> tuple[Any, float]:
         """The transit that folds the arm for the next drive, and the compute spent planning
-        it. Every later stop waits on it, so a planner that finds no path in its time is
-        given `STOW_RETRY` times as long, with another seed, before the job stops; the
-        reason when it still finds none."""
+        it. Every later stop waits on it, so a planner that finds no path in its time tries
+        next the way the arm came (this stop's transits' waypoints backwards, each straight
+        segment checked again: among hanging canes a path out is hard to find, the path in is
+        known), then searches `STOW_RETRY` times as long, with another seed, before the job
+        stops; the reason when it still finds none."""
         cfg, arm = self.cfg, self.planner.arm
         t0 = time.perf_counter()
         why = ""
         once = replace(cfg.job.transit, attempts=1)  # its own retry is the longer search
-        for k, transit in enumerate(
-            (once, replace(once, timeout=STOW_RETRY * cfg.job.transit.timeout))
-        ):
+        back = [w for w in reversed(self.trail[1:]) if self.planner.valid(w)]
+        for k, (transit, via) in enumerate((
+            (once, self._via(q, STOW, B)),
+            (replace(once, timeout=STOW_RETRY * cfg.job.transit.timeout), [back] if back else []),
+        )):  # fmt: skip
             try:
                 tr = plan_transit(q, STOW, self.planner.valid, arm.lower, arm.upper, self._limits(),
-                                  transit, cfg.seed + k, self._via(q, STOW, B),
-                                  self.planner.escape_clear)  # fmt: skip
+                                  transit, cfg.seed + k, via, self.planner.escape_clear)  # fmt: skip
                 return tr, time.perf_counter() - t0
             except PlanningFailed as exc:
                 why = str(exc)
@@ -458,6 +464,7 @@ class _Job:
         self.transits.append({"cut": r.cut, "how": tr.how, "planning_s": tr.planning_s,
                               "duration_s": tr.duration, "waypoints": len(tr.waypoints)})  # fmt: skip
         self._run_transit(tr, "transit", r.cut)
+        self.trail += tr.waypoints
         out, q_after = self._servo_and_cut(r, pose, goal, start, cut, q_goal, B, phases)
         return out, q_after, tr.planning_s
 
