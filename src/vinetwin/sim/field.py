@@ -181,9 +181,12 @@ def field_twin_view_problem(share: float, profile: FieldProfile, pose_id: str) -
         if profile.twin_trajectory == "grid"
         else 'capture more frames: --profile FILE with a larger "twin_frames"'
     )
+    shown = f"{100 * share:.0f}"
+    if shown == f"{100 * MIN_VIEW_COVERAGE:.0f}":  # 9.6% is not "10% (less than 10%)"
+        shown = f"{100 * share:.1f}"
     return (
         f"the field twin rebuilt from a {profile.twin_trajectory!r} capture shows "
-        f"{100 * share:.0f}% of what the true vine shows at pose {pose_id!r} (less than "
+        f"{shown}% of what the true vine shows at pose {pose_id!r} (less than "
         f"{100 * MIN_VIEW_COVERAGE:.0f}%): its reference would be empty; {hint}"
     )
 
