@@ -291,7 +291,9 @@ def test_fidelity_sweeps_the_twin_and_reports_errors_against_its_quality(
     assert 0 < stats["final_cut_mm"] < 20 and 0 < stats["final_translation_mm"] < 20
     assert "point_to_plane" in res["ideal"]
     assert (tmp_path / "fidelity.png").stat().st_size > 10_000
-    assert "| 12 | 1.0 / 2.0 |" in (tmp_path / "fidelity.md").read_text()
+    md = (tmp_path / "fidelity.md").read_text()
+    assert "| 12 | 1.0 / 2.0 |" in md and res["ablation_report"] is None
+    assert "alone, per variant): not run for this vine." in md  # no link to an ablation not run
 
 
 def test_the_depth_source_scales_and_thins_the_d405_depth() -> None:

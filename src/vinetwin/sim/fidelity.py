@@ -116,7 +116,8 @@ def run_fidelity(
         )  # fmt: skip
     result = {
         "twin": twin.name, "config": cfg.to_dict(), "sources": list(sources), "ideal": ideal,
-        "points": rows, "ablation_report": f"point{points.index(middle)}/report.md",
+        "points": rows,
+        "ablation_report": f"point{points.index(middle)}/report.md" if cfg.ablation else None,
     }  # fmt: skip
     atomic_write_json(out_dir / "fidelity.json", result)
     write_fidelity_report(result, out_dir)
@@ -154,9 +155,12 @@ def write_fidelity_report(result: dict[str, Any], out_dir: Path) -> None:
             f"{r['chamfer_mm']:.2f} | {r['fscore_2mm']:.3f} | "
             + " | ".join(cell(r["variants"].get(v)) for v in variants) + " |"
         )  # fmt: skip
+    ablation = result.get("ablation_report")
     lines += [
-        f"\nEach point's campaign report: `pointK/report.md`; the ablation (each error source "
-        f"alone, per variant): [{result['ablation_report']}]({result['ablation_report']}).\n",
+        "\nEach point's campaign report: `pointK/report.md`; the ablation (each error source "
+        "alone, per variant): "
+        + (f"[{ablation}]({ablation})" if ablation else "not run for this vine")
+        + ".\n",
         "![final error against the twin's quality](fidelity.png)\n",
     ]
     atomic_write_text(out_dir / "fidelity.md", "\n".join(lines))
