@@ -167,7 +167,8 @@ class _Job:
             robot_mesh = (np.asarray(rm.vertices), np.asarray(rm.faces))
             self.reference_backend = raycaster(rm.vertices, rm.faces, twin.camera)
             # a pose the rebuilt twin missed is skipped by name, as `vinetwin validate` refuses
-            # it: its reference would be empty and the servo would lose the vine
+            # it: its reference would be empty or a fragment, and the servo would lose the vine
+            # or settle beside the pose
             views = [p.T_vine_camera for p in twin.poses]
             shares = view_coverages(true, rm, twin.camera, views, twin.perception.max_depth)
             for p, share in zip(twin.poses, shares, strict=True):
