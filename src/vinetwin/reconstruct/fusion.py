@@ -2,7 +2,8 @@
 
 Fusion uses Open3D's VoxelBlockGrid (tensor TSDF, CPU) at 1-2 mm voxels with the D405's working range;
 the mesh comes out by marching cubes, then loses its small floating components (fusion debris
-from flying pixels: few triangles and a few millimetres across; `drop_debris`), is optionally smoothed (Taubin) and decimated to a target size.
+from flying pixels: few triangles and a few millimetres across; `drop_debris`), is optionally
+smoothed (Taubin) and decimated to a target size.
 
 Evaluation samples both meshes and reports the Chamfer distance and the precision, recall and
 F-score at given distances (2 mm and 5 mm by default). The ground truth is restricted to the part
