@@ -553,10 +553,10 @@ def test_an_arm_that_finds_no_way_out_retraces_the_way_it_came(
         job.planner.valid = valid  # type: ignore[method-assign]
         monkeypatch.setattr(T, "_ompl_path", search)
         B = np.eye(4)
-        job.trail = [STOW]  # nothing recorded: the planner's reason
+        job.trail = []  # nothing recorded: the planner's reason
         why, _ = job._stow(q, B)
         assert isinstance(why, str) and "no collision-free path" in why
-        job.trail = [STOW, STOW, w1, w2]  # the transit's waypoints, start to end
+        job.trail = [STOW, w1, w2]  # the transit's waypoints, start to end
         tr, _ = job._stow(q, B)
         assert not isinstance(tr, str) and tr.how == "via"
         assert np.allclose(np.array(tr.waypoints), [q, w2, w1, STOW, STOW])

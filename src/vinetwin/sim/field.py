@@ -230,13 +230,14 @@ def reconstructed_twin(
     from vinetwin.reconstruct.pipeline import ReconstructConfig, reconstruct
     from vinetwin.reconstruct.synthetic import synthetic_capture
 
+    fusion = FusionConfig()  # what `reconstruct` fuses with: its clean-up rule names the cache
     key = {
         "mesh_sha256": file_sha256(Path(twin.mesh_path)),
         "frames": profile.twin_frames,
         "noise": [profile.twin_pose_noise_translation, profile.twin_pose_noise_rotation],
         "voxel": profile.twin_voxel,
         "seed": seed,
-        "debris": [FusionConfig().min_component, FusionConfig().min_component_extent],
+        "debris": [fusion.min_component, fusion.min_component_extent],
         **({"trajectory": profile.twin_trajectory} if profile.twin_trajectory != "grid" else {}),
     }
     digest = json_sha256(key)[:16]

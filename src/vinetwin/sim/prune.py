@@ -274,7 +274,7 @@ class _Job:
                 self._place_vine(B)
                 self.arm.set_q(STOW)
             q = STOW.copy()
-            self.trail = [q]
+            self.trail = []
             for r in plan.order[x]:
                 out, q, pl = self._cut(r, B, q)
                 out["time_s"] += platform
@@ -369,11 +369,14 @@ class _Job:
         t0 = time.perf_counter()
         why = ""
         once = replace(cfg.job.transit, attempts=1)  # its own retry is the longer search
-        back = [w for w in reversed(self.trail[1:]) if self.planner.valid(w)]
-        for k, (transit, via) in enumerate((
-            (once, self._via(q, STOW, B)),
-            (replace(once, timeout=STOW_RETRY * cfg.job.transit.timeout), [back] if back else []),
-        )):  # fmt: skip
+        for k, transit in enumerate(
+            (once, replace(once, timeout=STOW_RETRY * cfg.job.transit.timeout))
+        ):
+            if k == 0:
+                via = self._via(q, STOW, B)
+            else:  # the way in, backwards, through the waypoints the planner still passes
+                back = [w for w in reversed(self.trail) if self.planner.valid(w)]
+                via = [back] if back else []
             try:
                 tr = plan_transit(q, STOW, self.planner.valid, arm.lower, arm.upper, self._limits(),
                                   transit, cfg.seed + k, via, self.planner.escape_clear)  # fmt: skip
