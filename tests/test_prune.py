@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from vinetwin.arm import HOME, LOWER, STOW, UPPER, ArmModel, _frames, _jacobian
+from vinetwin.arm import DH, HOME, LOWER, STOW, UPPER, ArmModel, _frames, _jacobian
 from vinetwin.errors import InputError
 from vinetwin.frames import make_pose
 from vinetwin.plan.job import Planner, plan_vine
@@ -284,19 +284,30 @@ def _twin_with(tmp_path: Path, sample_twin_dir: Path, keep: list[str], name: str
 
 
 def test_unreachable_cuts_are_named(tmp_path: Path, sample_twin_dir: Path) -> None:
-    """A pose 2.5 m up and one looking from the far side of the row are named, with the reason;
-    the others get a stop."""
+    """A pose 2.5 m up, one 1 m across the row from the shoulder (inside the reach's bound, but
+    past what the joint limits let the arm stretch to) and one looking from the far side of the
+    row are named, with the reason; the others get a stop."""
     twin = _twin_with(tmp_path, sample_twin_dir, ["p1", "p2"])
     high = twin.add_pose(twin.add_cut_point([0.1, 0.0, 2.5], [0, 0, 1]).id).id
     back = twin.add_pose(twin.add_cut_point([0.2, 0.0, 0.75], [0, 0, 1]).id).id
     looking_back = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # optical axis -Y
     twin.set_pose(back, make_pose(looking_back, [0.2, 0.15, 0.75]))
+    # the base at y -0.55, its shoulder 0.45 + 0.333 m up: a camera 1.0 m across the row
+    across = twin.add_pose(twin.add_cut_point([0.1, 0.6, 0.783], [0, 0, 1]).id).id
+    looking_on = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # optical axis +Y
+    twin.set_pose(across, make_pose(looking_on, [0.1, 0.45, 0.783]))
     twin.save()
     twin = Twin.load(twin.root)
     assert np.asarray(twin.pose(back).T_vine_camera)[1, 2] < -0.5
     planner = Planner.for_twin(twin, JobConfig(platform=PlatformConfig(offset=0.55, height=0.45)))
     plan = plan_vine(twin, planner)
-    assert "no platform stop reaches it" in plan.unreachable[high]
+    why = plan.unreachable[high]
+    assert why.startswith("out of the arm's reach from this side of the row"), why
+    far = float(why.split("lies ")[1].split(" m")[0])
+    cam = np.asarray(twin.pose(high).T_vine_camera)[:3, 3]
+    assert far == pytest.approx(np.hypot(cam[1] + 0.55, cam[2] - 0.783), abs=0.006)
+    assert f"at most {planner.arm.camera_reach:.2f} m" in why
+    assert "no platform stop reaches it" in plan.unreachable[across]
     assert "other side" in plan.unreachable[back]
     done = {r.pose for rs in plan.order.values() for r in rs}
     assert done == {"p1", "p2"}
@@ -562,3 +573,16 @@ def test_an_arm_that_finds_no_way_out_retraces_the_way_it_came(
         assert np.allclose(np.array(tr.waypoints), [q, w2, w1, STOW, STOW])
     finally:
         job.close()
+
+
+def test_the_camera_reach_bounds_every_configuration() -> None:
+    """`ArmModel.camera_reach` is an upper bound on the camera's distance from the shoulder
+    (20000 random joint vectors within the limits, and the arm stretched out), and not a loose
+    one: the farthest of them lies within 15% of it."""
+    arm = _arm()
+    rng = np.random.default_rng(0)
+    shoulder = np.array([0.0, 0.0, DH[0, 1]])
+    qs = list(rng.uniform(LOWER, UPPER, (20000, 7))) + [np.array([0, 0, 0, -0.0698, 0, 0, 0])]
+    far = max(float(np.linalg.norm(arm.camera(q)[:3, 3] - shoulder)) for q in qs)
+    assert far <= arm.camera_reach
+    assert far >= 0.85 * arm.camera_reach

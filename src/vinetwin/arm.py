@@ -275,6 +275,14 @@ class ArmModel:
         self.jmax = np.asarray(JERK_LIMITS)
         self._buf = np.empty((9, 4, 4))
 
+    @property
+    def camera_reach(self) -> float:
+        """An upper bound (m) on the camera's distance from the shoulder (joint 2's axis, on
+        the base's z axis `DH[0, 1]` above it), whatever the joints: the straight lengths from
+        each joint's origin to the next, the flange's and the camera's offsets, end to end."""
+        links = float(np.sum(np.hypot(DH[2:, 0], DH[2:, 1])))
+        return links + FLANGE_OFFSET + float(np.linalg.norm(self.T_flange_camera[:3, 3]))
+
     def frames(self, q: Any) -> Array:
         out = np.empty((9, 4, 4))
         _frames(np.asarray(q, float), out)

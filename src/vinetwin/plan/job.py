@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin.arm import STOW, ArmModel
+from vinetwin.arm import DH, STOW, ArmModel
 from vinetwin.errors import InputError
 from vinetwin.frames import Array
 from vinetwin.plan.config import BodyConfig
@@ -110,6 +110,7 @@ def plan_vine(
         cfg.platform, [tuple(np.asarray(p.T_vine_camera, float)[:3, 3]) for p in poses]))  # fmt: skip
     planner.cfg = cfg
     plan.platform = cfg.platform.to_dict()
+    poses = _within_reach(poses, cfg, planner.arm, plan)
     reach: dict[str, dict[float, CutReach]] = {}
     reasons: dict[str, dict[str, int]] = {}
     where: dict[str, tuple[Array, Array]] = {}
@@ -191,6 +192,28 @@ def plan_vine(
         _follow_on(twin, planner, s, plan.order[s], rng)
     plan.planning_s = time.perf_counter() - t0
     return plan
+
+
+def _within_reach(poses: list[Any], cfg: JobConfig, arm: ArmModel, plan: VinePlan) -> list[Any]:
+    """The poses the arm's camera could reach from some stop on the robot's side; the others
+    are named unreachable with how far across the row they lie (a bound, not a search: the
+    camera is farther from the shoulder than the arm, end to end, is long)."""
+    base = stop_pose(0.0, cfg.platform)[:3, 3]
+    shoulder_y, shoulder_z = float(base[1]), float(base[2]) + float(DH[0, 1])
+    reach = arm.camera_reach
+    kept = []
+    for p in poses:
+        c = np.asarray(p.T_vine_camera, float)[:3, 3]
+        far = float(np.hypot(c[1] - shoulder_y, c[2] - shoulder_z))
+        if far > reach:
+            plan.unreachable[p.id] = (
+                f"out of the arm's reach from this side of the row (the camera's pose lies "
+                f"{far:.2f} m from the arm's shoulder across the row; the arm reaches at most "
+                f"{reach:.2f} m): prune it from the row's other side"
+            )
+        else:
+            kept.append(p)
+    return kept
 
 
 def _follow_on(
