@@ -491,6 +491,37 @@ def test_a_killed_row_resumes_and_every_executor_agrees(
         assert comparable(ray["vines"][name]) == comparable(first["vines"][name])
 
 
+def test_a_vine_that_fails_is_named_and_an_earlier_report_is_kept(
+    tmp_path: Path, sample_twin_dir: Path
+) -> None:
+    """`vinetwin prune ROW`: a vine whose mesh is corrupt fails by name with a non-zero exit
+    status, the report holding the other; a row where every vine fails writes nothing over the
+    earlier report; a profile that cannot be read and a negative seed are refused before any
+    vine runs."""
+    pytest.importorskip("ompl")
+    from vinetwin.cli import main
+
+    row = _row(tmp_path, sample_twin_dir)
+    out = tmp_path / "out"
+    assert main(["prune", str(row), "--sim", "kinematic", "--out", str(out)]) == 0
+    report = (out / "report.html").read_bytes()
+    bad = Twin.load(row / "b.twin")
+    bad.mesh_path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\n")
+    args = ["prune", str(row), "--sim", "kinematic", "--out", str(out), "--force"]
+    assert main(args) == 2
+    data = json.loads((out / "prune.json").read_text())
+    assert set(data["vines"]) == {"a.twin"} and set(data["failed"]) == {"b.twin"}
+    Twin.load(row / "a.twin").mesh_path.write_bytes(b"not a mesh")
+    before = (out / "prune.json").read_bytes()
+    assert main(args) == 2
+    assert (out / "prune.json").read_bytes() == before  # nothing written over it
+    assert (out / "report.html").read_bytes() != report  # the one with a.twin alone, kept
+    fresh = tmp_path / "fresh"
+    assert main(["prune", str(row), "--profile", "nope.json", "--out", str(fresh)]) == 2
+    assert main(["prune", str(row), "--seed", "-1", "--out", str(fresh)]) == 2
+    assert not fresh.exists()
+
+
 @pytest.mark.slow
 def test_the_sample_is_pruned_on_the_mujoco_panda(tmp_path: Path, sample_twin_dir: Path) -> None:
     """The bundled sample, MuJoCo Panda, ideal profile: every pose reached and cut with the

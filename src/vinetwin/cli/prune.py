@@ -58,3 +58,11 @@ class Prune:
         if self.json:
             atomic_write_json(self.json, data)
         log.info("report: %s", out / "report.html")
+        if data["failed"]:
+            from vinetwin.errors import VinetwinError
+
+            raise VinetwinError(
+                f"{len(data['failed'])} of {s['vines'] + len(data['failed'])} vines failed (the "
+                "report holds the others; run again to retry them): " + "; ".join(
+                    f"{name}: {why}" for name, why in list(data["failed"].items())[:5])
+            )  # fmt: skip

@@ -33,7 +33,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from vinetwin._config import JsonFields
+from vinetwin._config import JsonFields, check_counts
 from vinetwin.arm import HOME, STOW
 from vinetwin.errors import InputError
 from vinetwin.frames import Array, invert, make_pose, so3_exp, so3_log, transform_points
@@ -111,6 +111,7 @@ class PruneConfig(JsonFields):
         if self.sim not in SIM_KINDS:
             raise InputError(f"unknown sim {self.sim!r}; choose one of: {', '.join(SIM_KINDS)}")
         check_gain(self, ("servo_gain", "servo_gain_far"))
+        check_counts(self, ("seed",))
         if not (0.5 <= self.servo_duration <= 120.0) or not (0.0 <= self.servo_settle <= 5.0):
             raise InputError("servo_duration must lie in [0.5, 120] s and servo_settle in [0, 5] s")
 

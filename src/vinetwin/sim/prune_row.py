@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin.errors import InputError
+from vinetwin.errors import InputError, VinetwinError
 from vinetwin.executor import ExecutorConfig, run_unordered
 from vinetwin.files import atomic_write_json, file_sha256, read_json
 from vinetwin.sim.prune import PruneConfig, prune_twin
@@ -63,8 +63,11 @@ def prune_row(
     """Prunes every twin at `path` (one twin, or a folder of them); returns the row's data
     (`vines`: each vine's result, `summary`), also written to OUT/prune.json. `mcap`: each vine
     run now also as OUT/vines/NAME.mcap/ (a ROS 2 bag for Foxglove)."""
+    from vinetwin.sim.config import load_profile
+
     root = Path(path)
     twins = find_twins(root)
+    load_profile(cfg.profile)  # a profile that cannot be read is named before any vine runs
     base = root.parent if (root / "twin.json").exists() else root
     vines_dir = out / "vines"
     vines_dir.mkdir(parents=True, exist_ok=True)
@@ -104,6 +107,9 @@ def prune_row(
             failed[name] = str(outcome.error)
             log.error("%s: %s", name, outcome.error)
     ordered = {names[str(t)]: results[names[str(t)]] for t in twins if names[str(t)] in results}
+    if failed and not ordered:  # nothing to report: an earlier report is left as it was
+        raise VinetwinError(f"every vine failed; nothing written to {out}: " + "; ".join(
+            f"{name}: {why}" for name, why in list(failed.items())[:5]))  # fmt: skip
     data = {"config": cfg.to_dict(), "vines": ordered, "failed": failed,
             "summary": row_summary(ordered)}  # fmt: skip
     atomic_write_json(out / "prune.json", data)
