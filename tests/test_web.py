@@ -153,6 +153,18 @@ def in_browser(
         shutil.rmtree(before.parent, ignore_errors=True)
 
 
+def test_a_folder_that_is_not_a_twin_is_refused_before_serving(tmp_path: Path) -> None:
+    """`vinetwin web PATH`: a path with no twin.json (a typo) is refused by name, with what
+    makes a twin, before any server starts (it served an empty page)."""
+    from vinetwin.errors import InputError
+    from vinetwin.web.server import serve_folder
+
+    (tmp_path / "empty").mkdir()
+    for path in (tmp_path / "nope", tmp_path / "empty"):
+        with pytest.raises(InputError, match=r"no twin\.json here.*import-scan"):
+            serve_folder(path, port=1)  # port 1 would be refused too: never reached
+
+
 def test_page_sends_only_what_changed(twin_dir: Path) -> None:
     """After a click the app sends the new cut point and pose; the pose that was selected is
     recoloured in place and the other nodes stay as they were sent. A deleted pose leaves the

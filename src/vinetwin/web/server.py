@@ -71,6 +71,11 @@ def serve_folder(
 
         root = copy_bundled_sample(Path("out") / "web")
         log.info("no twin given: editing a copy of the bundled sample in %s", root)
+    elif not (Path(root) / "twin.json").is_file():  # a typo: no page for a folder that is not
+        raise InputError(  # a twin (a twin that cannot be read opens, its problem shown)
+            f"{root}: no twin.json here; give a twin folder (`vinetwin sample`, `import-vine` "
+            "and `import-scan` make one), or nothing for a copy of the bundled sample"
+        )
     app = serve(root, host, port, config)
     if forever:
         import time
