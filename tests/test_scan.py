@@ -228,6 +228,27 @@ def test_a_cloud_that_is_not_a_plant_is_refused(shape: str, tmp_path: Path) -> N
     assert not (tmp_path / "out.twin").exists()
 
 
+def test_a_cloud_too_sparse_or_too_thick_for_a_vine_is_refused(tmp_path: Path) -> None:
+    """Scattered points 4 cm apart are refused as a vine by their spacing (it made a 'vine' of
+    158 branches 6 cm thick); a skeleton whose branches are mostly 6 cm thick is no vine, and
+    may be a tree."""
+    from vinetwin.scan.importer import _check_plant
+    from vinetwin.twin.skeleton import Branch, Skeleton
+
+    rng = np.random.default_rng(0)
+    f = _ply_cloud(tmp_path / "scattered.ply", rng.random((2500, 3)))
+    with pytest.raises(ScanError, match=r"\d+ mm apart .*too sparse for a vine.*--plant tree"):
+        import_scan(f, tmp_path / "out.twin", ScanImportConfig(units="m"))
+    assert not (tmp_path / "out.twin").exists()
+    z = np.linspace(0.0, 1.5, 40)
+    axis = np.column_stack([0 * z, 0 * z, z])
+    thick = Skeleton([Branch(axis, 0.03 + 0 * z, kind="trunk")])
+    pts = rng.normal(0, 0.03, (520, 3)) + axis.repeat(13, 0)
+    with pytest.raises(ScanError, match=r"6\.0 cm thick.*--plant tree"):
+        _check_plant(thick, pts, "thick.ply", "vine")
+    _check_plant(thick, pts, "thick.ply", "tree")
+
+
 def test_a_file_over_max_points_is_decimated_and_says_so(scanned: Scanned, tmp_path: Path) -> None:
     pts = scanned.in_scanner()
     for fmt in ("xyz", "las", "ply"):

@@ -31,6 +31,13 @@ ROW_EXTENT = 100.0
 #: The median distance between neighbouring points (m) of a scan of a plant: terrestrial and
 #: handheld LiDAR, stereo and photogrammetry give 0.5-30 mm.
 POINT_SPACING = (0.0002, 0.05)
+#: A vine's scan sparser than this (m, median between neighbours) cannot hold its canes (5-15 mm
+#: thick): at 20 mm, the sparsest simulated quality, the skeleton found 37-61% of the canes
+#: (`docs/scans.md`); a tree's limbs are scanned coarser (WoodSKE's real LiDAR trees: 25 mm).
+VINE_MAX_SPACING = 0.03
+#: A vine's wood is mostly canes, spurs and cordons, 0.5-4 cm thick: a skeleton whose
+#: length-weighted median thickness (m) is above this is no vine (a volume of scattered points).
+VINE_MAX_THICKNESS = 0.05
 #: Points read at most; a larger file is decimated while it is read (every k-th point, named
 #: in the report), so memory stays bounded (about 100 bytes a point while importing).
 MAX_POINTS = 5_000_000

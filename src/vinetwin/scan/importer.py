@@ -20,7 +20,13 @@ from vinetwin.errors import ScanError, SeveralPlants, TwinError
 from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates, label_kinds
 from vinetwin.scan.clean import find_ground, find_posts, find_wires, statistical_strays
-from vinetwin.scan.config import PLANT_EXTENT, UNIT_SCALE, ScanImportConfig
+from vinetwin.scan.config import (
+    PLANT_EXTENT,
+    UNIT_SCALE,
+    VINE_MAX_SPACING,
+    VINE_MAX_THICKNESS,
+    ScanImportConfig,
+)
 from vinetwin.scan.frame import (
     axis_vector,
     guess_up,
@@ -91,6 +97,12 @@ def analyse_scan(
         m = statistical_strays(pts, cl.outlier_neighbours, cl.outlier_std)
         removed_scan["stray"], pts = pts[m], pts[~m]
     spacing, _ = spacing_and_extent(pts, rng)
+    if config.plant == "vine" and spacing > VINE_MAX_SPACING:
+        raise ScanError(
+            f"{path}: its points lie {1000 * spacing:.0f} mm apart (median): too sparse for a "
+            f"vine's canes, 5-15 mm thick (a vine's scan wants 3-5 mm; past "
+            f"{1000 * VINE_MAX_SPACING:g} mm nothing holds); --plant tree for a tree's limbs"
+        )
     ground = find_ground(pts, spacing, rng) if cl.ground else None
     up: Array | None = None
     up_from = ""
@@ -129,7 +141,7 @@ def analyse_scan(
     removed_scan["apart"] = pts[res.stray_mask]
     pts = pts[~res.stray_mask]
     step("skeleton")
-    _check_plant(res.skeleton, pts, path)
+    _check_plant(res.skeleton, pts, path, config.plant)
     sk = res.skeleton
     foot = sk.branches[0].points[0].copy()
     if ground is not None:  # the trunk's foot on the ground
@@ -207,9 +219,10 @@ def _one_plant(pts: Array, up: Array, ground_offset: float | None, spacing: floa
 MAX_RADIUS_SHARE = 0.05
 
 
-def _check_plant(sk: Skeleton, points: Array, path: str | Path) -> None:
+def _check_plant(sk: Skeleton, points: Array, path: str | Path, plant: str = "vine") -> None:
     """Refuses what is no plant: a skeleton with almost no length, or whose branches are as
-    wide as the scan (a plane, a ball)."""
+    wide as the scan (a plane, a ball); for a vine, branches thicker than a vine's wood is
+    (`VINE_MAX_THICKNESS`: a volume of scattered points)."""
     total = sum(b.length for b in sk.branches)
     extent = float(np.ptp(points, axis=0).max())
     r = np.concatenate([0.5 * (b.radii[1:] + b.radii[:-1]) for b in sk.branches])
@@ -221,6 +234,12 @@ def _check_plant(sk: Skeleton, points: Array, path: str | Path) -> None:
             f"{path}: no plant found: the skeleton is {total:.2f} m long with branches "
             f"{2 * med * 100:.1f} cm thick in a scan {extent:.2f} m across (a plane, a ball or a "
             f"block, not branches)"
+        )
+    if plant == "vine" and 2 * med > VINE_MAX_THICKNESS:
+        raise ScanError(
+            f"{path}: no vine found: its skeleton's branches are {2 * med * 100:.1f} cm thick "
+            f"(the median over their length; a vine's canes and cordons are 0.5-4 cm); "
+            "--plant tree for a tree"
         )
 
 
