@@ -49,6 +49,26 @@ def test_capture_round_trip(capture: Path, vine_views: VineViews) -> None:
 
 
 @pytest.mark.parametrize(
+    ("field", "value", "needle"),
+    [("frames", 0, "frames must be"), ("distance", 0.01, "depth range"),
+     ("distance", float("nan"), "distance must be"), ("pose_noise", (-0.001, 0.0), "pose_noise"),
+     ("seed", -1, "seed must be")],
+)  # fmt: skip
+def test_a_synthetic_capture_out_of_range_is_refused(
+    field: str, value: object, needle: str
+) -> None:
+    """`capture-synthetic --frames 0` wrote an empty capture; a camera 1 cm from the vine, a NaN
+    distance, a negative pose noise and a negative seed are refused by name, as is any setting
+    past its range."""
+    from vinetwin.errors import InputError
+    from vinetwin.reconstruct.config import SyntheticCaptureConfig
+
+    with pytest.raises(InputError, match=needle):
+        SyntheticCaptureConfig(**{field: value})  # type: ignore[arg-type]
+    SyntheticCaptureConfig(frames=1, distance=0.07)
+
+
+@pytest.mark.parametrize(
     ("damage", "needle"),
     [
         ("missing depth", "frame 000003: depth"),

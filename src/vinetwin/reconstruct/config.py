@@ -123,3 +123,27 @@ class SyntheticCaptureConfig:
     trajectory: Literal["grid", "path", "poses"] = "grid"
     """grid: viewpoints over the vine; path: a video-like sweep; poses: around the pruning poses."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        from vinetwin._config import check_counts
+        from vinetwin.camera import D405_MAX_DEPTH_M, D405_MIN_DEPTH
+
+        check_counts(self, ("seed",))
+        f = self.frames
+        if isinstance(f, bool) or not isinstance(f, int) or not 1 <= f <= 100_000:
+            raise InputError(f"frames must be an integer in [1, 100000], got {f!r}")
+        check_finite(self, ("distance",))
+        # the nearest any D405 mode sees (nearer than its own mode's minimum, a frame is empty)
+        near = min(D405_MIN_DEPTH.values())
+        if not near <= self.distance <= D405_MAX_DEPTH_M:
+            raise InputError(
+                f"distance must lie within the D405's depth range, {near:g}-"
+                f"{D405_MAX_DEPTH_M:g} m, got {self.distance}"
+            )
+        noise = tuple(float(v) for v in self.pose_noise)
+        if len(noise) != 2 or not all(0.0 <= v <= 1.0 for v in noise):  # NaN fails too
+            raise InputError(
+                f"pose_noise must be 2 values in [0, 1] (m, rad), got {self.pose_noise}"
+            )
+        if self.trajectory not in ("grid", "path", "poses"):
+            raise InputError(f"unknown trajectory {self.trajectory!r}; choose grid, path or poses")
