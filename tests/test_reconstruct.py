@@ -15,6 +15,7 @@ from tests.conftest import VineViews
 from vinetwin import frames as fr
 from vinetwin.capture.folder import CaptureError, read_capture
 from vinetwin.cloud import Cloud
+from vinetwin.reconstruct.config import ReconstructConfig
 from vinetwin.reconstruct.fusion import FusionConfig, evaluate, fuse, kinematic_poses, observed
 from vinetwin.reconstruct.synthetic import synthetic_capture
 
@@ -66,6 +67,27 @@ def test_a_synthetic_capture_out_of_range_is_refused(
     with pytest.raises(InputError, match=needle):
         SyntheticCaptureConfig(**{field: value})  # type: ignore[arg-type]
     SyntheticCaptureConfig(frames=1, distance=0.07)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "needle"),
+    [({"voxel": 0.0}, "voxel must lie"), ({"voxel": -0.01}, "voxel must be >= 0"),
+     ({"voxel": float("nan")}, "voxel must be"), ({"depth_max": 3.0}, "depth_max must lie"),
+     ({"target_triangles": -5}, "target_triangles must be")],
+)  # fmt: skip
+def test_fusion_settings_out_of_range_are_refused(kwargs: dict, needle: str) -> None:
+    """`reconstruct --voxel 0` stopped inside Open3D with its own exception; it and the other
+    settings that make no mesh are refused by name, in the command's config and the fusion's."""
+    from vinetwin.errors import InputError
+
+    with pytest.raises(InputError, match=needle):
+        ReconstructConfig(**kwargs)
+    with pytest.raises(InputError, match=needle):
+        FusionConfig(**kwargs)
+    with pytest.raises(InputError, match="depth_max must lie"):
+        FusionConfig(depth_min=0.3, depth_max=0.2)
+    with pytest.raises(InputError, match="min_component is a share"):
+        FusionConfig(min_component=2.0)
 
 
 @pytest.mark.parametrize(

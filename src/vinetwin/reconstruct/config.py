@@ -20,6 +20,35 @@ TSDF_VOXEL = 0.0015
 TRUNCATION_VOXELS = 4
 #: The farthest depth fused (m): beyond it the D405's noise blurs canes.
 FUSED_DEPTH_MAX = 0.5
+#: The TSDF voxel's range (m): under 0.5 mm is finer than the D405 resolves depth at its nearest
+#: (the grid only grows); over 1 cm a 5 mm cane is lost within one voxel.
+VOXEL_RANGE = (0.0005, 0.01)
+
+
+def _check_fusion(cfg: object) -> None:
+    """Refuses, by name, fusion settings that make no mesh or an absurd one (Open3D stopped on a
+    voxel of 0 with its own exception)."""
+    from vinetwin.camera import D405_MAX_DEPTH_M
+
+    def get(name: str, default: float = 0.0) -> float:
+        return getattr(cfg, name, default)
+
+    check_finite(cfg, tuple(n for n in ("voxel", "truncation", "depth_min", "depth_max",
+                                        "min_component", "min_component_extent")
+                            if hasattr(cfg, n)))  # fmt: skip
+    lo, hi = VOXEL_RANGE
+    if not lo <= get("voxel") <= hi:
+        raise InputError(f"voxel must lie in [{lo:g}, {hi:g}] m, got {get('voxel')}")
+    if not 0.0 < get("depth_max") <= D405_MAX_DEPTH_M or get("depth_min") >= get("depth_max"):
+        raise InputError(f"depth_max must lie in (0, {D405_MAX_DEPTH_M:g}] m and above "
+                         f"depth_min, got {get('depth_max')}")  # fmt: skip
+    if get("min_component") > 1.0:
+        raise InputError(f"min_component is a share of the largest component's triangles, in "
+                         f"[0, 1], got {get('min_component')}")  # fmt: skip
+    for n in ("target_triangles", "smooth_iterations", "block_count", "min_pixels"):
+        v, least = getattr(cfg, n, 1), int(n == "block_count")
+        if isinstance(v, bool) or not isinstance(v, int) or v < least:
+            raise InputError(f"{n} must be an integer >= {least}, got {v!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -53,6 +82,9 @@ class FusionConfig:
     """A frame with fewer depth pixels than this within [depth_min, depth_max] is skipped and
     named: it adds nothing a mesh could keep, and Open3D aborts the whole integration on some
     (four scattered pixels, in a sweep past a large vine: "No block is touched")."""
+
+    def __post_init__(self) -> None:
+        _check_fusion(self)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -108,6 +140,9 @@ class ReconstructConfig:
     """Farthest depth fused (m); the nearest is the camera's own minimum."""
     target_triangles: int = 0
     """Decimate the mesh to at most this many triangles (0: keep)."""
+
+    def __post_init__(self) -> None:
+        _check_fusion(self)
 
 
 @dataclass(frozen=True, kw_only=True)
