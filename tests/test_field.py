@@ -204,6 +204,8 @@ def test_profiles_load_by_name_or_file_and_refuse_typos(tmp_path: Path) -> None:
         CampaignConfig(profile="feild")
     with pytest.raises(InputError, match="latency"):
         FieldProfile(latency=math.nan)
+    with pytest.raises(InputError, match="twin_voxel must lie"):  # the fusion's own range
+        FieldProfile(twin_voxel=0.05)
 
 
 def test_field_campaign_lands_off_the_ideal_one_but_bounded(

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, Literal, get_args
 
 from vinetwin._config import JsonFields, check_at_most, check_counts, check_finite
 from vinetwin.errors import InputError
-from vinetwin.reconstruct.config import TSDF_VOXEL
+from vinetwin.reconstruct.config import TSDF_VOXEL, VOXEL_RANGE
 from vinetwin.servo.config import Law, Limits, ServoConfig, Variant
 from vinetwin.sim.paper import PRESETS
 
@@ -188,6 +188,9 @@ class FieldProfile(JsonFields):
             raise InputError(f"twin_frames must be >= 10, got {self.twin_frames}")
         if not (0.0 <= self.frame_drop < 1.0 and 0.0 <= self.depth_dropout < 1.0):
             raise InputError("frame_drop and depth_dropout must lie in [0, 1)")
+        if not VOXEL_RANGE[0] <= self.twin_voxel <= VOXEL_RANGE[1]:  # the fusion's own range
+            raise InputError(f"twin_voxel must lie in [{VOXEL_RANGE[0]:g}, {VOXEL_RANGE[1]:g}] m, "
+                             f"got {self.twin_voxel}")  # fmt: skip
 
     def on(self, source: str) -> bool:
         return source in self.sources
