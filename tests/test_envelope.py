@@ -470,6 +470,7 @@ def test_servo_plot_names_binary_and_malformed_logs(
     logs = {
         "binary": binary,
         "not an object": "[1, 2]\n",
+        "not json": "garbage\n",  # was called an empty log
         "bad version": '{"format": "vinetwin-servo-log", "format_version": "x"}\n',
         "bad cycle": header + '{"stamp": 0.0, "true_error": 5, "trusted": true}\n',
         "bad pose": header + '{"stamp": 0.0, "T_ref_cur": [[1]], "trusted": true}\n',
@@ -480,6 +481,7 @@ def test_servo_plot_names_binary_and_malformed_logs(
             path.write_text(content)
         rc, text = said(["servo-plot", str(path), "--out", str(tmp_path / "plots")], caplog, capsys)
         assert rc == 2 and str(path) in text and "Traceback" not in text, (name, text)
+        assert name != "not json" or "not a vinetwin servo log" in text, text
 
 
 # ----------------------------------------------------------------------------- 10 small

@@ -361,6 +361,9 @@ def read_log(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]], di
         try:
             rec = parse_json(line)
         except ValueError:
+            if n == 0:  # not a partial last line: the first line is no JSON at all
+                raise InputError(f"{path}: not a vinetwin servo log (its first line is no "
+                                 "JSON)") from None  # fmt: skip
             break  # a partial last line
         if not isinstance(rec, dict):
             if n == 0:
