@@ -238,6 +238,9 @@ def test_validate_against_a_world_counts_the_twins_own_error(
     far.apply_translation([0.0, 0.0, 3.0])
     shifted.export(tmp_path / "shifted.ply")
     far.export(tmp_path / "far.ply")
+    in_mm = mesh.copy()
+    in_mm.apply_scale(1000.0)
+    in_mm.export(tmp_path / "mm.ply")
 
     def cfg(world: str) -> ValidateConfig:
         return ValidateConfig(
@@ -258,6 +261,8 @@ def test_validate_against_a_world_counts_the_twins_own_error(
     assert "validation_world" in Twin.load(root).pose("p1").extra
     with pytest.raises(VinetwinError, match="is the world in the twin's vine frame"):
         validate_folder(root, cfg(str(tmp_path / "far.ply")))
+    with pytest.raises(VinetwinError, match="is the world in another unit"):
+        validate_folder(root, cfg(str(tmp_path / "mm.ply")))
     with pytest.raises(InputError, match="no such mesh file or twin folder"):
         validate(Twin.load(root), cfg(str(tmp_path / "none.ply")))
 

@@ -308,11 +308,16 @@ def _check_world_view(world_mesh: Any, twin_mesh: Any, twin: Twin, pid: str, goa
     twin_share = view_coverage(world_mesh, twin_mesh, twin.camera, goal, far)
     world_share = view_coverage(twin_mesh, world_mesh, twin.camera, goal, far)
     if min(twin_share, world_share) < MIN_VIEW_COVERAGE:
+        w, t = (
+            float(np.ptp(np.asarray(m.vertices), axis=0).max()) for m in (world_mesh, twin_mesh)
+        )
+        units = (f" The world is {w:.3g} across, the twin {t:.3g} m: is the world in another "
+                 "unit (it must be in metres)?" if t > 0 and not 0.1 <= w / t <= 10 else "")  # fmt: skip
         raise VinetwinError(
             f"the twin shows {100 * twin_share:.0f}% of what the world {world} shows at pose "
             f"{pid!r}, the world {100 * world_share:.0f}% of what the twin shows (less than "
             f"{100 * MIN_VIEW_COVERAGE:.0f}%): the reference or the view would be empty; is the "
-            "world in the twin's vine frame?"
+            "world in the twin's vine frame?" + units
         )
 
 
