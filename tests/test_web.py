@@ -561,7 +561,7 @@ def test_browser_proposes_and_reviews_cuts(twin_dir: Path, tmp_path: Path) -> No
 def test_browser_shows_the_pruning_plan(twin_dir: Path) -> None:
     """In headless Chromium: Plan the job lists the platform stops with each stop's poses in
     order (every pose of the sample reached) and draws the stops and the order in the scene;
-    a pose no stop reaches is listed with its reason."""
+    a pose out of the arm's reach is listed with its reason."""
     pytest.importorskip("ompl")
 
     twin = Twin.load(twin_dir)
@@ -578,9 +578,9 @@ def test_browser_shows_the_pruning_plan(twin_dir: Path) -> None:
         result = app.plan_result
         planned = {r.pose for rs in result.order.values() for r in rs}
         assert planned == {p.id for p in twin.poses} - {high.id}
-        assert "no platform stop reaches it" in result.unreachable[high.id]
+        assert "out of the arm's reach" in result.unreachable[high.id]
         page.get_by_text("platform stops").first.wait_for(timeout=30_000)
-        page.get_by_text(f"{high.id}: no platform stop reaches it").first.wait_for(timeout=30_000)
+        page.get_by_text(f"{high.id}: out of the arm's reach").first.wait_for(timeout=30_000)
         assert len(app.plan_nodes) == 2 * len(result.stops) + len(planned)
 
     in_browser(twin_dir, body)
