@@ -323,6 +323,12 @@ def test_the_command_names_bad_options_and_a_missing_skeleton(
     rc, text = said(["propose", str(vine_twin.root), "--replace", "--json", str(out)])
     assert rc == 0 and "cuts proposed by the spur rule" in text
     assert json.loads(out.read_text())["counts"]["proposed"] >= 1
+    kept = out.read_text()  # an existing --json is refused (it was overwritten), as elsewhere
+    rc, text = said(["propose", str(vine_twin.root), "--replace", "--json", str(out)])
+    assert rc == 2 and "--overwrite" in text and out.read_text() == kept
+    rc, text = said(["propose", str(vine_twin.root), "--replace", "--json", str(out),
+                     "--overwrite"])  # fmt: skip
+    assert rc == 0
 
 
 def test_the_search_keeps_the_arms_wrist_off_the_vine(vine_twin: Twin) -> None:

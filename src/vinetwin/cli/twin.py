@@ -89,10 +89,14 @@ class Propose:
     config: Annotated[ProposeConfig, Nested] = field(default_factory=ProposeConfig)
     json: Path | None = None
     """Also write the proposals and their scores here."""
+    overwrite: bool = False
+    """Replace an existing file at --json (refused otherwise, before any cut is proposed)."""
 
     def run(self) -> None:
+        from vinetwin.files import refuse_existing_json
         from vinetwin.plan.proposer import propose_folder
 
+        refuse_existing_json(self.json, self.overwrite)
         fn = None
         if self.config.servo.check_profile:  # the servo's check runs the simulation
             from vinetwin.sim.servo_check import propose_checked as fn
