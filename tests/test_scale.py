@@ -261,6 +261,26 @@ def test_vineyard_validation_on_ray_resumes_after_a_kill(
     assert "validation" in json.loads((twins[1].root / "twin.json").read_text())["pruning_poses"][0]
 
 
+def test_a_broken_twin_in_a_vineyard_fails_by_name_and_the_others_export(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    """One twin's mesh corrupt and another's twin.json: the export names both (exit status 2)
+    and writes every other twin's references (the first broken twin stopped the whole export,
+    before anything was rendered)."""
+    root = _vineyard(tmp_path)
+    good, bad = find_twins(root)
+    shutil.copytree(bad, root / "row3" / "torn.twin")
+    (Twin.load(bad).mesh_path).write_bytes(b"not a mesh")
+    (root / "row3" / "torn.twin" / "twin.json").write_text("{torn")
+    assert main(["export", str(root), "--workers", "1"]) == 2
+    said = caplog.text
+    assert "2 of " in said and "not a mesh" not in said  # the mesh's file named, not its bytes
+    assert f"{bad.name} (all): " in said and "torn.twin (all): " in said, said
+    n = len(Twin.load(good).poses)
+    assert len(list((good / "references").glob("*.ply"))) == n
+    assert f"{n} rendered" in capsys.readouterr().out
+
+
 def test_cli_exports_a_vineyard_with_ray(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -249,18 +249,27 @@ def export_many(
     force: bool = False,
     executor: ExecutorConfig | None = None,
     progress: Callable[[PoseResult, int, int], None] | None = None,
+    broken: Sequence[tuple[str, str]] = (),
 ) -> ExportReport:
     """Exports every pose of every twin in one pool of workers (a vineyard: a folder of twin
-    folders). See `export_references` for the arguments."""
+    folders). See `export_references` for the arguments. A twin that cannot be exported (its
+    mesh unreadable, say; `broken`: (folder, why) of those that did not load) fails by name
+    and the others are exported."""
     t_start = time.perf_counter()
     backend = resolve_backend(backend, sum(len(t.poses) for t in twins))
     skipped: list[PoseResult] = []
     jobs: list[_Job] = []
+    failed = [PoseResult("(all)", "failed", error=why, twin=root) for root, why in broken]
     for twin in twins:
-        sk, js = plan_export(twin, backend=backend, seed=seed, sensor=sensor, force=force)
+        try:
+            sk, js = plan_export(twin, backend=backend, seed=seed, sensor=sensor, force=force)
+        except VinetwinError as exc:
+            failed.append(PoseResult("(all)", "failed", error=str(exc), twin=str(twin.root)))
+            continue
         skipped += sk
         jobs += js
     report = _run_planned(skipped, jobs, workers, executor, progress)
+    report.results += failed
     order = {
         (str(t.root), p.id): k for k, (t, p) in enumerate((t, p) for t in twins for p in t.poses)
     }
@@ -389,9 +398,15 @@ def export_twins(
         return report, twin.references_dir
     if pose_ids:
         raise InputError("--poses selects poses of one twin, not of a vineyard")
+    twins, broken = [], []
+    for r in roots:  # a twin that does not load fails by name; the others are exported
+        try:
+            twins.append(Twin.load(r))
+        except VinetwinError as exc:
+            broken.append((str(r), str(exc)))
     report = export_many(
-        [Twin.load(r) for r in roots], backend=backend, workers=workers, seed=seed,
-        sensor=sensor, force=force, executor=executor, progress=progress,
+        twins, backend=backend, workers=workers, seed=seed, sensor=sensor, force=force,
+        executor=executor, progress=progress, broken=broken,
     )  # fmt: skip
     return report, Path(path)
 
@@ -402,7 +417,9 @@ def check_export_ok(report: ExportReport) -> None:
     if failed:
         raise VinetwinError(
             f"{len(failed)} of {len(report.results)} references failed: "
-            + "; ".join(f"{r.pose_id}: {r.error}" for r in failed)
+            + "; ".join(
+                f"{Path(r.twin).name + ' ' if r.twin else ''}{r.pose_id}: {r.error}" for r in failed
+            )
         )
 
 
