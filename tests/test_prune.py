@@ -507,10 +507,15 @@ def test_a_vine_that_fails_is_named_and_an_earlier_report_is_kept(
     report = (out / "report.html").read_bytes()
     bad = Twin.load(row / "b.twin")
     bad.mesh_path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\n")
+    torn = row / "c.twin"
+    shutil.copytree(row / "a.twin", torn)
+    (torn / "twin.json").write_text("{torn")
     args = ["prune", str(row), "--sim", "kinematic", "--out", str(out), "--force"]
     assert main(args) == 2
     data = json.loads((out / "prune.json").read_text())
-    assert set(data["vines"]) == {"a.twin"} and set(data["failed"]) == {"b.twin"}
+    assert set(data["vines"]) == {"a.twin"} and set(data["failed"]) == {"b.twin", "c.twin"}
+    assert "not valid JSON" in data["failed"]["c.twin"]
+    shutil.rmtree(torn)
     Twin.load(row / "a.twin").mesh_path.write_bytes(b"not a mesh")
     before = (out / "prune.json").read_bytes()
     assert main(args) == 2

@@ -279,6 +279,15 @@ def test_a_broken_twin_in_a_vineyard_fails_by_name_and_the_others_export(
     n = len(Twin.load(good).poses)
     assert len(list((good / "references").glob("*.ply"))) == n
     assert f"{n} rendered" in capsys.readouterr().out
+    # validate: the torn twin named, the others validated (it stopped the whole vineyard)
+    from vinetwin.errors import VinetwinError
+    from vinetwin.sim.validate import validate_folder
+
+    shutil.rmtree(bad)
+    cfg = ValidateConfig(variants=("point_to_plane",), starts=1, duration=2.0, workers=1)
+    with pytest.raises(VinetwinError, match=r"1 twins could not be read .*torn\.twin"):
+        validate_folder(root, cfg)
+    assert (good / "validation" / "summary.json").exists()
 
 
 def test_cli_exports_a_vineyard_with_ray(

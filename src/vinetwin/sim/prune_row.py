@@ -75,10 +75,16 @@ def prune_row(
     jobs: list[tuple[str, dict[str, Any], str]] = []
     names: dict[str, str] = {}
     digests: dict[str, str] = {}
+    failed: dict[str, str] = {}
     for t in twins:
         name = vine_name(t, base)
-        digest = _digest(t, cfg)
         names[str(t)] = name
+        try:
+            digest = _digest(t, cfg)
+        except VinetwinError as exc:  # a twin that does not load fails by name
+            failed[name] = str(exc)
+            log.error("%s: %s", name, exc)
+            continue
         digests[str(t)] = digest
         kept = vines_dir / f"{name}.json"
         if kept.exists() and not force:
@@ -91,7 +97,6 @@ def prune_row(
                 log.info("%s: done before (same inputs), kept", name)
                 continue
         jobs.append((str(t), cfg.to_dict(), str(vines_dir / f"{name}.mcap") if mcap else ""))
-    failed: dict[str, str] = {}
     done = 0
     for outcome in run_unordered(_job, jobs, executor):
         t = jobs[outcome.index][0]

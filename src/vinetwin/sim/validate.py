@@ -143,7 +143,14 @@ def validate_folder(
     from vinetwin.errors import VinetwinError
     from vinetwin.twin.model import find_twins
 
-    twins = [Twin.load(r) for r in find_twins(path)]
+    twins, broken = [], []
+    for r in find_twins(path):  # a twin that does not load fails by name; the others run
+        try:
+            twins.append(Twin.load(r))
+        except VinetwinError as exc:
+            broken.append(f"{r}: {exc}")
+    if not twins:
+        raise VinetwinError("; ".join(broken))
     summaries = validate_many(twins, cfg, progress, executor)
     if echo is not None:
         for twin in twins:
@@ -157,7 +164,11 @@ def validate_folder(
             f"{len(failed)} pose/variant validations failed (run again to complete them; "
             "one its field twin does not show, with the remedy): "
             + "; ".join(f"{f['pose']}.{f['variant']}: {f['error']}" for f in failed[:5])
+            + "".join(f"; twin {b}" for b in broken)
         )
+    if broken:
+        raise VinetwinError(f"{len(broken)} twins could not be read (the others were "
+                            "validated): " + "; ".join(broken))  # fmt: skip
     return summaries
 
 
