@@ -9,6 +9,7 @@ import errno
 import json
 import logging
 import os
+import re
 import socket
 import time
 from pathlib import Path
@@ -344,6 +345,21 @@ def test_rich_markup_in_a_twin_path_is_printed_as_text(
     assert rc == 0 and "vine[/oops]" in text, text
     rc, text = said(["info", str(twin)], caplog, capsys)
     assert rc == 0 and "vine[/oops]" in text, text
+    assert re.search(r"skeleton skeleton\.json: \d+ branches, [\d.]+ m of wood", text), text
+
+
+def test_info_names_a_skeleton_it_cannot_read(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`vinetwin info` validates the twin folder: a torn skeleton.json (which `propose` and the
+    web app need) is said after the rest of the summary, and the command fails on it (it
+    was not looked at)."""
+    twin = tmp_path / "v.twin"
+    assert said(["sample", "--out", str(twin), "--edge", "0.006"], caplog, capsys)[0] == 0
+    (twin / "skeleton.json").write_text("{torn")
+    rc, text = said(["info", str(twin)], caplog, capsys)
+    assert rc == 2 and "cannot be read" in text and "cannot read skeleton" in text, text
+    assert "pruning poses" in text  # the rest still summarised
 
 
 def _full_disk(monkeypatch: pytest.MonkeyPatch) -> None:

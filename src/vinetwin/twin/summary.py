@@ -6,7 +6,8 @@ from vinetwin.twin.model import Twin
 
 
 def print_summary(twin: Twin, mesh: bool = True) -> None:
-    """Prints what a twin holds: mesh, camera, cut points, and each pose with its servo-ability."""
+    """Prints what a twin holds: mesh, camera, skeleton, cut points, and each pose with its
+    servo-ability; raises TwinError, after printing, when the skeleton cannot be read."""
     from rich.console import Console
     from rich.markup import escape
     from rich.table import Table
@@ -21,6 +22,20 @@ def print_summary(twin: Twin, mesh: bool = True) -> None:
             f"extent {ext[0]:.3f} x {ext[1]:.3f} x {ext[2]:.3f} m"
         )
     con.print(f"camera {escape(twin.camera.name)}: {twin.camera.width}x{twin.camera.height}")
+    broken = ""
+    if twin.skeleton_file:
+        from vinetwin.errors import TwinError
+
+        try:
+            sk = twin.load_skeleton()
+        except TwinError as exc:  # said after the rest, and the command fails on it
+            broken = str(exc)
+            con.print(f"skeleton {escape(twin.skeleton_file)}: [bold red]cannot be read[/]")
+        else:
+            assert sk is not None
+            length = sum(b.length for b in sk.branches)
+            con.print(f"skeleton {escape(twin.skeleton_file)}: {len(sk.branches)} branches, "
+                      f"{length:.2f} m of wood, {len(sk.candidates)} cut candidates")  # fmt: skip
     table = Table(
         "pose", "cut point", "standoff (m)", "ICP variant", "camera position (m)", "servo-ability"
     )
@@ -45,6 +60,10 @@ def print_summary(twin: Twin, mesh: bool = True) -> None:
     con.print(f"{len(twin.cut_points)} cut points{props}, {len(twin.poses)} pruning poses")
     if twin.poses:
         con.print(table)
+    if broken:
+        from vinetwin.errors import TwinError
+
+        raise TwinError(broken)
 
 
 def _all_profiles(extra: dict[str, object], variant: str) -> str:
