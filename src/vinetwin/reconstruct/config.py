@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
-from vinetwin._config import JsonFields, check_finite
+from vinetwin._config import JsonFields, check_counts, check_finite
 from vinetwin.cloud import PerceptionConfig
 from vinetwin.errors import InputError
 
@@ -25,28 +25,24 @@ FUSED_DEPTH_MAX = 0.5
 VOXEL_RANGE = (0.0005, 0.01)
 
 
-def _check_fusion(cfg: object) -> None:
+def _check_fusion(cfg: FusionConfig) -> None:
     """Refuses, by name, fusion settings that make no mesh or an absurd one (Open3D stopped on a
     voxel of 0 with its own exception)."""
     from vinetwin.camera import D405_MAX_DEPTH_M
 
-    def get(name: str, default: float = 0.0) -> float:
-        return getattr(cfg, name, default)
-
-    check_finite(cfg, tuple(n for n in ("voxel", "truncation", "depth_min", "depth_max",
-                                        "min_component", "min_component_extent")
-                            if hasattr(cfg, n)))  # fmt: skip
+    check_finite(cfg, ("voxel", "truncation", "depth_min", "depth_max", "min_component",
+                       "min_component_extent"))  # fmt: skip
     lo, hi = VOXEL_RANGE
-    if not lo <= get("voxel") <= hi:
-        raise InputError(f"voxel must lie in [{lo:g}, {hi:g}] m, got {get('voxel')}")
-    if not 0.0 < get("depth_max") <= D405_MAX_DEPTH_M or get("depth_min") >= get("depth_max"):
+    if not lo <= cfg.voxel <= hi:
+        raise InputError(f"voxel must lie in [{lo:g}, {hi:g}] m, got {cfg.voxel}")
+    if not 0.0 < cfg.depth_max <= D405_MAX_DEPTH_M or cfg.depth_min >= cfg.depth_max:
         raise InputError(f"depth_max must lie in (0, {D405_MAX_DEPTH_M:g}] m and above "
-                         f"depth_min, got {get('depth_max')}")  # fmt: skip
-    if get("min_component") > 1.0:
+                         f"depth_min, got {cfg.depth_max}")  # fmt: skip
+    if cfg.min_component > 1.0:
         raise InputError(f"min_component is a share of the largest component's triangles, in "
-                         f"[0, 1], got {get('min_component')}")  # fmt: skip
+                         f"[0, 1], got {cfg.min_component}")  # fmt: skip
     for n in ("target_triangles", "smooth_iterations", "block_count", "min_pixels"):
-        v, least = getattr(cfg, n, 1), int(n == "block_count")
+        v, least = getattr(cfg, n), int(n == "block_count")
         if isinstance(v, bool) or not isinstance(v, int) or v < least:
             raise InputError(f"{n} must be an integer >= {least}, got {v!r}")
 
@@ -142,7 +138,12 @@ class ReconstructConfig:
     """Decimate the mesh to at most this many triangles (0: keep)."""
 
     def __post_init__(self) -> None:
-        _check_fusion(self)
+        self.fusion()  # its settings checked where the fusion's are
+
+    def fusion(self) -> FusionConfig:
+        """The fusion's settings these make."""
+        return FusionConfig(voxel=self.voxel, depth_max=self.depth_max,
+                            target_triangles=self.target_triangles)  # fmt: skip
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -160,7 +161,6 @@ class SyntheticCaptureConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        from vinetwin._config import check_counts
         from vinetwin.camera import D405_MAX_DEPTH_M, D405_MIN_DEPTH
 
         check_counts(self, ("seed",))

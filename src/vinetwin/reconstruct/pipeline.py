@@ -40,7 +40,7 @@ def reconstruct(
 
     from vinetwin.capture.folder import CaptureError, read_capture
     from vinetwin.mesh import load_mesh
-    from vinetwin.reconstruct.fusion import FusionConfig, evaluate, fuse, kinematic_poses, observed
+    from vinetwin.reconstruct.fusion import evaluate, fuse, kinematic_poses, observed
     from vinetwin.twin.model import TWIN_FILE, Twin
 
     cfg = config or ReconstructConfig()
@@ -120,12 +120,7 @@ def reconstruct(
         )  # fmt: skip
     else:
         poses = kinematic_poses(cap)
-    fusion = FusionConfig(
-        voxel=cfg.voxel,
-        depth_max=cfg.depth_max,
-        target_triangles=cfg.target_triangles,
-    )
-    res = fuse(cap, poses, fusion, progress)
+    res = fuse(cap, poses, cfg.fusion(), progress)
     res.frames_skipped.update(not_fused)  # why they had no pose
     source = {"reconstructed_from": str(capture), "poses": cfg.poses, "voxel": cfg.voxel}
     if (twin_dir / TWIN_FILE).exists():

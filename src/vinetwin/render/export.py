@@ -249,7 +249,7 @@ def export_many(
     force: bool = False,
     executor: ExecutorConfig | None = None,
     progress: Callable[[PoseResult, int, int], None] | None = None,
-    broken: Sequence[tuple[str, str]] = (),
+    broken: Sequence[tuple[Path, str]] = (),
 ) -> ExportReport:
     """Exports every pose of every twin in one pool of workers (a vineyard: a folder of twin
     folders). See `export_references` for the arguments. A twin that cannot be exported (its
@@ -259,7 +259,7 @@ def export_many(
     backend = resolve_backend(backend, sum(len(t.poses) for t in twins))
     skipped: list[PoseResult] = []
     jobs: list[_Job] = []
-    failed = [PoseResult("(all)", "failed", error=why, twin=root) for root, why in broken]
+    failed = [PoseResult("(all)", "failed", error=why, twin=str(root)) for root, why in broken]
     for twin in twins:
         try:
             sk, js = plan_export(twin, backend=backend, seed=seed, sensor=sensor, force=force)
@@ -383,7 +383,7 @@ def export_twins(
     """`vinetwin export`: the references of one twin folder (`pose_ids`: some of its poses) or
     of every twin of a vineyard folder; `clean` renders without the D405 model. Returns the
     report and the folder the references went to."""
-    from vinetwin.twin.model import find_twins
+    from vinetwin.twin.model import find_twins, load_twins
 
     if not 0 <= seed < 2**32 or workers < 0:
         raise InputError(f"seed must lie in [0, 2^32) and workers be >= 0, got {seed}, {workers}")
@@ -398,12 +398,7 @@ def export_twins(
         return report, twin.references_dir
     if pose_ids:
         raise InputError("--poses selects poses of one twin, not of a vineyard")
-    twins, broken = [], []
-    for r in roots:  # a twin that does not load fails by name; the others are exported
-        try:
-            twins.append(Twin.load(r))
-        except VinetwinError as exc:
-            broken.append((str(r), str(exc)))
+    twins, broken = load_twins(roots)  # one that does not load fails by name
     report = export_many(
         twins, backend=backend, workers=workers, seed=seed, sensor=sensor, force=force,
         executor=executor, progress=progress, broken=broken,

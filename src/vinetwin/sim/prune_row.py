@@ -21,13 +21,12 @@ from vinetwin.errors import InputError, VinetwinError
 from vinetwin.executor import ExecutorConfig, run_unordered
 from vinetwin.files import atomic_write_json, file_sha256, read_json
 from vinetwin.sim.prune import PruneConfig, prune_twin
-from vinetwin.twin.model import Twin, find_twins
+from vinetwin.twin.model import Twin, find_twins, load_twins
 
 log = logging.getLogger(__name__)
 
 
-def _digest(twin_dir: Path, cfg: PruneConfig) -> str:
-    twin = Twin.load(twin_dir)
+def _digest(twin: Twin, cfg: PruneConfig) -> str:
     h = hashlib.sha256()
     h.update(json.dumps(twin.to_json(), sort_keys=True, default=str).encode())
     h.update(file_sha256(twin.mesh_path).encode())
@@ -76,15 +75,16 @@ def prune_row(
     names: dict[str, str] = {}
     digests: dict[str, str] = {}
     failed: dict[str, str] = {}
-    for t in twins:
+    loaded, unread = load_twins(twins)
+    for r, why in unread:  # a twin that does not load fails by name
+        names[str(r)] = failed_name = vine_name(r, base)
+        failed[failed_name] = why
+        log.error("%s: %s", failed_name, why)
+    for twin in loaded:
+        t = twin.root
         name = vine_name(t, base)
         names[str(t)] = name
-        try:
-            digest = _digest(t, cfg)
-        except VinetwinError as exc:  # a twin that does not load fails by name
-            failed[name] = str(exc)
-            log.error("%s: %s", name, exc)
-            continue
+        digest = _digest(twin, cfg)
         digests[str(t)] = digest
         kept = vines_dir / f"{name}.json"
         if kept.exists() and not force:

@@ -141,14 +141,10 @@ def validate_folder(
     (a list for a vineyard). Raises VinetwinError naming the pose/variant validations that
     failed (a rerun completes only them)."""
     from vinetwin.errors import VinetwinError
-    from vinetwin.twin.model import find_twins
+    from vinetwin.twin.model import find_twins, load_twins
 
-    twins, broken = [], []
-    for r in find_twins(path):  # a twin that does not load fails by name; the others run
-        try:
-            twins.append(Twin.load(r))
-        except VinetwinError as exc:
-            broken.append(f"{r}: {exc}")
+    loaded, unread = load_twins(find_twins(path))  # one that does not load fails by name
+    twins, broken = loaded, [f"{r}: {why}" for r, why in unread]
     if not twins:
         raise VinetwinError("; ".join(broken))
     summaries = validate_many(twins, cfg, progress, executor)

@@ -611,6 +611,21 @@ def find_twins(path: str | Path) -> list[Path]:
     return found
 
 
+def load_twins(paths: list[Path]) -> tuple[list[Twin], list[tuple[Path, str]]]:
+    """The twins at `paths` that load, and (folder, why) for each that does not: a vineyard's
+    batch runs the others and names these."""
+    from vinetwin.errors import VinetwinError
+
+    twins: list[Twin] = []
+    broken: list[tuple[Path, str]] = []
+    for r in paths:
+        try:
+            twins.append(Twin.load(r))
+        except VinetwinError as exc:
+            broken.append((r, str(exc)))
+    return twins, broken
+
+
 #: The tube mesh's triangle edge (m): below MIN_EDGE a 1.5 m vine's mesh passes 5 million
 #: triangles; above MAX_EDGE a cane is a few flat facets.
 MIN_EDGE, MAX_EDGE = 0.0005, 0.05

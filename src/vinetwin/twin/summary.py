@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from vinetwin.errors import TwinError
 from vinetwin.twin.model import Twin
 
 
@@ -24,8 +25,6 @@ def print_summary(twin: Twin, mesh: bool = True) -> None:
     con.print(f"camera {escape(twin.camera.name)}: {twin.camera.width}x{twin.camera.height}")
     broken = ""
     if twin.skeleton_file:
-        from vinetwin.errors import TwinError
-
         try:
             sk = twin.load_skeleton()
         except TwinError as exc:  # said after the rest, and the command fails on it
@@ -61,8 +60,6 @@ def print_summary(twin: Twin, mesh: bool = True) -> None:
     if twin.poses:
         con.print(table)
     if broken:
-        from vinetwin.errors import TwinError
-
         raise TwinError(broken)
 
 
