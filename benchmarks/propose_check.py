@@ -33,8 +33,7 @@ from results_file import machine
 from vinetwin.plan.config import ProposeConfig, RuleConfig, ServoCheckConfig
 from vinetwin.plan.proposer import propose
 from vinetwin.sim.config import load_profile
-from vinetwin.sim.servo_check import propose_checked, validate_config
-from vinetwin.sim.validate import validate
+from vinetwin.sim.servo_check import _rates, propose_checked
 from vinetwin.twin.model import Twin
 
 AROUND_POSES = ("gdc_can1", "apple_spindle")
@@ -54,17 +53,10 @@ def profile_for(name: str, work: Path) -> str:
 
 def rates(twin: Twin, cfg: ServoCheckConfig, seed: int) -> dict[str, Any]:
     """Each pose's share of starts converged under `cfg`'s profile at `seed` (or why it did not
-    run: a field twin that does not show the pose)."""
-    pids = tuple(p.id for p in twin.poses)
-    if not pids:
-        return {}
-    summary = validate(twin, replace(validate_config(cfg, pids), seed=seed))
-    out: dict[str, Any] = {}
-    for row in summary["poses"]:
-        cell = row["variants"]["point_to_plane"]
-        out[row["pose"]] = {"error": str(cell["failed"])[:160]} if "failed" in cell else (
-            cell["success_rate"])  # fmt: skip
-    return out
+    run: a field twin that does not show the pose): the check's own validation, another seed."""
+    pids = [p.id for p in twin.poses]
+    got = _rates(twin, replace(cfg, check_seed=seed), pids) if pids else {}
+    return {pid: {"error": why[:160]} if why else rate for pid, (rate, why) in got.items()}
 
 
 def counts(r: dict[str, Any]) -> tuple[int, int]:
