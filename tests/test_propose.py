@@ -176,6 +176,26 @@ def _obstacles(twin: Twin) -> VineObstacles:
     return VineObstacles(np.asarray(m.vertices), np.asarray(m.faces), twin.camera)
 
 
+def test_the_far_side_search_looks_from_the_far_aisle(vine_twin: Twin) -> None:
+    """From the far side (+Y) the grid and the default approach turn half a turn: a cane 7 cm in
+    front of the cut on the near side is behind the camera there, and the default is clear."""
+    sk = known_vine()
+    cut = _upright_cut(0.3, 2)
+    sk.branches.append(Branch(_line([0.2, -0.07, cut[2] - 0.1], [0.4, -0.07, cut[2] + 0.1]),
+                              np.full(60, 0.004), "cane", parent=-1, label="blocker"))  # fmt: skip
+    twin = twin_from_skeleton(vine_twin.root.parent / "blocked_far.twin", sk, edge=0.003)
+    obs, cfg, axis = _obstacles(twin), SearchConfig(), np.array([0.0, 0.0, 1.0])
+    cane = np.array([cut + [0, 0, dz] for dz in np.linspace(-0.05, 0.05, 11)])
+    found = search_pose(obs, cut, axis, cane, 0.004, cfg, far=True)
+    assert found.default.clearance >= cfg.body.margin
+    assert math.degrees(found.default.approach.azimuth) == pytest.approx(-90.0)
+    assert found.best is not None
+    T = pruning_pose(cut, axis, found.best.approach)
+    assert T[1, 2] < -0.5 and T[1, 3] > cut[1] + 0.1  # on +Y, looking back across the row
+    assert all(195 - 1e-6 <= math.degrees(c.approach.azimuth) % 360 <= 345 + 1e-6
+               for c in found.ranked)  # fmt: skip
+
+
 def test_search_refuses_a_pose_inside_a_cane_and_clears_a_blocking_one(vine_twin: Twin) -> None:
     """A cane in front of the cut, on the default approach's line: the default pose's tool runs
     through it (negative clearance); the search turns the approach and keeps every body part

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 from vinetwin._config import JsonFields, check_counts, check_finite
 from vinetwin.errors import InputError
@@ -120,7 +120,15 @@ class SearchConfig(JsonFields):
     azimuths: int = 13
     """Approach azimuths tried, evenly over `azimuth_range`."""
     azimuth_range: tuple[float, float] = (15.0, 165.0)
-    """Approach azimuths (deg; 90: looking along +Y, from the robot's side of the row)."""
+    """Approach azimuths (deg; 90: looking along +Y, from the robot's side of the row). From the
+    row's far side the same range half a turn on (`side`)."""
+    side: Literal["near", "far", "auto"] = "auto"
+    """Which side of the row each cut is approached from: near (the robot's, -Y), far (+Y: the
+    platform's pass along the next aisle; `vinetwin prune --sides both`), or auto: far for a
+    cut more than `far_beyond` on the far side of the trunk's foot (a divided canopy's far
+    curtain: the GDC's lie 1.2 m apart, past the arm's reach from the near aisle)."""
+    far_beyond: float = 0.3
+    """With side auto: how far (m, +Y) past the trunk's foot a cut is taken from the far side."""
     elevations: int = 7
     """Approach elevations tried, evenly over `elevation_range`."""
     elevation_range: tuple[float, float] = (-30.0, 60.0)
@@ -163,10 +171,23 @@ class SearchConfig(JsonFields):
                 f"azimuth_range {self.azimuth_range} must be increasing degrees within "
                 f"[-180, 360] and elevation_range {self.elevation_range} within [-89, 89]"
             )
+        if self.side not in ("near", "far", "auto"):
+            raise InputError(f"side must be near, far or auto, got {self.side!r}")
+        if not (math.isfinite(self.far_beyond) and 0.05 <= self.far_beyond <= 5.0):
+            raise InputError(f"far_beyond must lie in [0.05, 5] m, got {self.far_beyond}")
         if not 0.0 <= self.min_cross <= 90.0 or not 0.0 <= self.min_visible <= 1.0:
             raise InputError("min_cross must lie in [0, 90] deg and min_visible in [0, 1]")
         if isinstance(self.min_points, bool) or not 0 <= self.min_points <= 1_000_000:
             raise InputError(f"min_points must be 0-1000000, got {self.min_points}")
+
+    def far_for(self, point: Any) -> bool:
+        """Whether a cut at `point` (vine frame) is approached from the row's far side."""
+        return self.side == "far" or (self.side == "auto" and float(point[1]) > self.far_beyond)
+
+    def azimuths_for(self, far: bool) -> tuple[float, float]:
+        """The azimuth range (deg) from the near side, or from the far one: half a turn on."""
+        a0, a1 = self.azimuth_range
+        return (a0 + 180.0, a1 + 180.0) if far else (a0, a1)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -103,7 +103,8 @@ def plan_vine(
     for p in poses:
         if p not in near:
             plan.unreachable[p.id] = (
-                "the pose looks at the row from its other side (+Y): prune it from there"
+                "the pose looks at the row from its other side (+Y): prune it from there "
+                "(`vinetwin prune --sides both`)"
             )
     poses = near
     cfg = replace(cfg, platform=placed(
@@ -209,7 +210,8 @@ def _within_reach(poses: list[Any], cfg: JobConfig, arm: ArmModel, plan: VinePla
             plan.unreachable[p.id] = (
                 f"out of the arm's reach from this side of the row (the camera's pose lies "
                 f"{far:.2f} m from the arm's shoulder across the row; the arm reaches at most "
-                f"{reach:.2f} m): prune it from the row's other side"
+                f"{reach:.2f} m): prune it from the row's other side (`vinetwin propose "
+                "--side far` or auto approaches it from there)"
             )
         else:
             kept.append(p)

@@ -157,9 +157,15 @@ class JobConfig(JsonFields):
     reach: ReachConfig = field(default_factory=ReachConfig)
     transit: TransitConfig = field(default_factory=TransitConfig)
     cut: CutConfig = field(default_factory=CutConfig)
+    sides: Literal["near", "both"] = "both"
+    """near: the platform works the robot's side of the row only (a pose looking at the row from
+    its far side is skipped by name); both: those poses are pruned in a second pass from the
+    far side's aisle (`sim.prune_sides`), the vine's time the sum of both passes."""
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()
+        if self.sides not in ("near", "both"):
+            raise InputError(f"sides must be near or both, got {self.sides!r}")
 
 
 def placed(platform: PlatformConfig, cameras: list[tuple[float, float, float]]) -> PlatformConfig:

@@ -147,11 +147,14 @@ def propose(
         if any(np.linalg.norm(c.point - p.point) < SAME_CUT for c in twin.cut_points):
             result.already += 1
             continue
-        found = search_pose(obstacles, p.point, p.cane_axis, p.cane, p.radius, cfg.search, wrist)
+        far = cfg.search.far_for(p.point)
+        found = search_pose(obstacles, p.point, p.cane_axis, p.cane, p.radius, cfg.search, wrist,
+                            far)  # fmt: skip
         cut = twin.add_cut_point(p.point, p.cane_axis, name=f"{p.label} {p.action}",
                                  source="proposal")  # fmt: skip
         rec: dict[str, Any] = {
             "status": "proposed", "rule": cfg.rule.rule, **p.to_json(),
+            "side": "far" if far else "near",
             "pose": "found" if found.best else found.reason,
             "default": found.default.summary(), "tried": found.tried,
         }  # fmt: skip

@@ -197,11 +197,12 @@ def body_distance(Q: Array, standoff: float, body: BodyConfig, exempt: Array) ->
 
 
 def approaches(
-    cane_axis: Array, cfg: SearchConfig, fine: int = 1, roll: float = 0.0
+    cane_axis: Array, cfg: SearchConfig, fine: int = 1, roll: float = 0.0, far: bool = False
 ) -> list[Approach]:
     """The grid of approach directions across the cane (at least `min_cross` from it), at image
-    roll `roll` (rad); `fine` > 1 divides each step of the grid that many times."""
-    a0, a1 = np.radians(cfg.azimuth_range)
+    roll `roll` (rad); `fine` > 1 divides each step of the grid that many times; `far`: from the
+    row's far side."""
+    a0, a1 = np.radians(cfg.azimuths_for(far))
     e0, e1 = np.radians(cfg.elevation_range)
     out = []
     for az in np.linspace(a0, a1, (cfg.azimuths - 1) * fine + 1):
@@ -299,21 +300,23 @@ def search_pose(
     radius: float,
     cfg: SearchConfig,
     wrist: Wrist | None = None,
+    far: bool = False,
 ) -> Found:
     """The best pruning pose for one cut (see the module's docstring): the grid at each of the
     search's rolls in turn, then, when no direction of them passes, a grid three times as fine
     at each roll. `wrist`: the arm's parts fixed to the camera, checked too (`Wrist.for_arm`
-    with the twin's hand-eye transform)."""
+    with the twin's hand-eye transform). `far`: from the row's far side (+Y), the grid and the
+    default approach half a turn about the vertical."""
     cut = np.asarray(cut, dtype=np.float64)
     axis = np.asarray(cane_axis, dtype=np.float64)
     axis = axis / np.linalg.norm(axis)
-    dflt = default_approach(axis, cfg.standoff)
+    dflt = default_approach(axis, cfg.standoff, (0.0, -1.0, 0.0) if far else (0.0, 1.0, 0.0))
     default = Candidate(dflt, float(_clearances(obs, cut, axis, [dflt], cfg, wrist)[0]))
     _sight(obs, default, cut, axis, cane, radius)
     found = Found(None, "", default, 0)
     for fine in (1, 3):
         for roll in cfg.rolls:
-            aps = approaches(axis, cfg, fine, math.radians(roll))
+            aps = approaches(axis, cfg, fine, math.radians(roll), far)
             clear = _clearances(obs, cut, axis, aps, cfg, wrist)
             tried = [Candidate(ap, float(cl)) for ap, cl in zip(aps, clear, strict=True)]
             found = _choose(obs, tried, default, cut, axis, cane, radius, cfg, wrist)

@@ -24,7 +24,6 @@ of its own cut point: the cut). Any other contact is a collision.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -44,6 +43,7 @@ from vinetwin.plan.transit import PlanningFailed, plan_transit
 from vinetwin.servo.config import ENVELOPE, check_gain
 from vinetwin.sim.config import SimConfig, load_profile
 from vinetwin.sim.prune_mcap import Track, write_mcap
+from vinetwin.sim.prune_sides import far_pose_ids, far_side_twin, merge, summary
 from vinetwin.sim.straight import (
     CUT_DT,
     SETTLED_SPEED,
@@ -296,9 +296,7 @@ class _Job:
                 simulated += tr.duration
                 self._run_transit(tr, "stow", "")
         wall = time.perf_counter() - wall0
-        done = [c for c in cuts if c["status"] == "done"]
-        right = [c for c in done if c["blade_error_m"] <= cfg.job.cut.max_blade_error]
-        times = [c["time_s"] for c in done]
+        reached, tol = len(twin.poses) - len(plan.unreachable), cfg.job.cut.max_blade_error
         return {
             "twin": str(twin.root),
             "name": twin.name,
@@ -311,22 +309,7 @@ class _Job:
             "reach_planning_s": plan.planning_s,
             "events": events,
             "transits": self.transits,
-            "summary": {
-                "poses": len(twin.poses),
-                "reachable": len(twin.poses) - len(plan.unreachable),
-                "done": len(done),
-                "done_right": len(right),
-                "skipped": len(cuts) - len(done),
-                "median_time_per_cut_s": float(np.median(times)) if times else math.nan,
-                "median_blade_error_mm": (
-                    1000 * float(np.median([c["blade_error_m"] for c in done]))
-                    if done
-                    else math.nan
-                ),
-                "simulated_s": simulated,
-                "wall_s": wall,
-                "realtime_factor": simulated / wall if wall > 0 else math.nan,
-            },
+            "summary": summary(cuts, len(twin.poses), reached, simulated, wall, tol),
         }
 
     def _skip_all(self, r: CutReach, reason: str) -> dict[str, Any]:
@@ -689,12 +672,27 @@ def prune_twin(
     also write the job as a ROS 2 bag with MCAP storage there (`sim.prune_mcap`)."""
     cfg = cfg or PruneConfig()
     twin = Twin.load(path)
+    out, track = _pass(twin, cfg)
+    far = far_pose_ids(twin) if cfg.job.sides == "both" else []
+    far_track = None
+    if far:  # the second pass, from the far aisle (`sim.prune_sides`)
+        t0 = time.perf_counter()
+        far_out, far_track = _pass(far_side_twin(twin, far), cfg)
+        far_out["summary"]["wall_s"] = time.perf_counter() - t0  # its twin's making too
+        out = merge(out, far_out, twin)
+    if mcap is not None:
+        write_mcap(Path(mcap), track)
+        out["mcap"] = str(mcap)
+        if far_track is not None:  # the far pass in its own frame (the vine turned half a turn)
+            out["mcap_far_side"] = str(Path(mcap).with_name(Path(mcap).stem + "_far.mcap"))
+            write_mcap(Path(out["mcap_far_side"]), far_track)
+    return out
+
+
+def _pass(twin: Twin, cfg: PruneConfig) -> tuple[dict[str, Any], Track]:
+    """One pass of the job along the twin's robot side: its result and its track."""
     job = _Job(twin, cfg)
     try:
-        out = job.run()
+        return job.run(), job.track
     finally:
         job.close()
-    if mcap is not None:
-        write_mcap(Path(mcap), job.track)
-        out["mcap"] = str(mcap)
-    return out

@@ -33,7 +33,7 @@ def cut_rows(vine: dict[str, Any], tol: float) -> list[dict[str, str]]:
         if outcome == "done":
             outcome = "done" if err <= tol else f"done, blade {1000 * err:.1f} mm off"
         rows.append({
-            "cut": c["cut"] or "-", "pose": c["pose"] or "-",
+            "cut": c["cut"] or "-", "pose": c["pose"] or "-", "side": c.get("side", "near"),
             "stop (m)": _f(c.get("stop"), 1, 2), "outcome": outcome,
             "blade error (mm)": _f(err, 1000, 2), "time (s)": _f(c["time_s"]),
             **{f"{p} (s)": _f(c.get("phases", {}).get(p)) for p in PHASES},
@@ -106,8 +106,10 @@ def plot_vine(vine: dict[str, Any], path: Path, tol: float) -> None:
         ax.annotate(c["pose"], (x, z), xytext=(4, 4), textcoords="offset points", fontsize=7)
     for s in vine["plan"]["stops"]:
         ax.axvline(s, color="tab:blue", lw=0.8, ls="--")
+    for s in vine["plan"].get("far_side", {}).get("stops", []):
+        ax.axvline(s, color="tab:purple", lw=0.8, ls=":")
     ax.set_aspect("equal")
-    ax.set_xlabel("x along the row (m); dashed: platform stops")
+    ax.set_xlabel("x along the row (m); platform stops: dashed near aisle, dotted far aisle")
     ax.set_ylabel("z (m)")
     ax.set_title("cuts: green done right, orange blade off, red skipped")
     fig.tight_layout()

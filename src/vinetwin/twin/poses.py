@@ -106,9 +106,11 @@ def pruning_pose(
     return make_pose(np.column_stack([x, y, z]), p - ap.standoff * z)
 
 
-def default_approach(cane_axis: Any, standoff: float = DEFAULT_STANDOFF) -> Approach:
-    """The default approach (perpendicular to the cane, from -Y) as angles."""
-    az, el = angles_from_direction(default_approach_direction(cane_axis))
+def default_approach(
+    cane_axis: Any, standoff: float = DEFAULT_STANDOFF, toward: Any = DEFAULT_TOWARD
+) -> Approach:
+    """The default approach (perpendicular to the cane, from -Y; looking `toward`) as angles."""
+    az, el = angles_from_direction(default_approach_direction(cane_axis, toward))
     return Approach(standoff=standoff, azimuth=az, elevation=el, roll=0.0)
 
 
