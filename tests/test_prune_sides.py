@@ -34,7 +34,7 @@ def _with_a_far_pose(tmp_path: Path, sample_twin_dir: Path) -> tuple[Twin, str]:
 
 
 def test_the_far_twin_is_the_vine_turned_half_a_turn(tmp_path: Path, sample_twin_dir: Path) -> None:
-    from vinetwin.sim.prune_sides import far_pose_ids, far_side_twin
+    from vinetwin.plan.sides import far_pose_ids, far_side_twin
 
     twin, back = _with_a_far_pose(tmp_path, sample_twin_dir)
     assert far_pose_ids(twin) == [back]

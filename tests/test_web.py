@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import socket
 import tempfile
@@ -561,11 +562,14 @@ def test_browser_proposes_and_reviews_cuts(twin_dir: Path, tmp_path: Path) -> No
 def test_browser_shows_the_pruning_plan(twin_dir: Path) -> None:
     """In headless Chromium: Plan the job lists the platform stops with each stop's poses in
     order (every pose of the sample reached) and draws the stops and the order in the scene;
-    a pose out of the arm's reach is listed with its reason."""
+    a pose out of the arm's reach is listed with its reason; a pose looking from the row's far
+    side is planned from the far aisle (its stop drawn there), as `prune`'s far pass does."""
     pytest.importorskip("ompl")
+    from vinetwin.twin.poses import Approach
 
     twin = Twin.load(twin_dir)
     high = twin.add_pose(twin.add_cut_point([0.0, 0.0, 2.6], [0, 0, 1]).id)
+    back = twin.add_pose(twin.pose("p1").cut_point, Approach(0.15, -math.pi / 2, 0.2, 0.0))
     twin.save()
 
     def body(page: Any, app: Any, port: int) -> None:
@@ -575,12 +579,19 @@ def test_browser_shows_the_pruning_plan(twin_dir: Path) -> None:
         end = time.monotonic() + 120
         while time.monotonic() < end and getattr(app, "plan_result", None) is None:
             time.sleep(0.2)
-        result = app.plan_result
+        result, far = app.plan_result, app.plan_far
         planned = {r.pose for rs in result.order.values() for r in rs}
-        assert planned == {p.id for p in twin.poses} - {high.id}
+        assert planned == {p.id for p in twin.poses} - {high.id, back.id}
         assert "out of the arm's reach" in result.unreachable[high.id]
+        assert back.id not in result.unreachable
+        assert {r.pose for rs in far.order.values() for r in rs} == {back.id}
         page.get_by_text("platform stops").first.wait_for(timeout=30_000)
         page.get_by_text(f"{high.id}: out of the arm's reach").first.wait_for(timeout=30_000)
-        assert len(app.plan_nodes) == 2 * len(result.stops) + len(planned)
+        page.get_by_text("far aisle: 1 platform stops").first.wait_for(timeout=30_000)
+        assert len(app.plan_nodes) == 2 * len(result.stops) + len(planned) + 2 * len(far.stops) + 1
+        # the far aisle's stop stands on +Y, past the row, facing it
+        assert len(far.stops) == 1
+        frame = next(h for h in app.plan_nodes if h.name == "/plan/farstop0")
+        assert frame.position[1] > 0.3
 
     in_browser(twin_dir, body)

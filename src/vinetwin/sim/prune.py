@@ -39,11 +39,12 @@ from vinetwin.frames import Array, invert, make_pose, so3_exp, so3_log, transfor
 from vinetwin.plan.job import Planner, plan_vine
 from vinetwin.plan.job_config import JobConfig
 from vinetwin.plan.reach import Collider, CutReach, stop_pose
+from vinetwin.plan.sides import far_pose_ids, far_side_twin
 from vinetwin.plan.transit import PlanningFailed, plan_transit
 from vinetwin.servo.config import ENVELOPE, check_gain
 from vinetwin.sim.config import SimConfig, load_profile
 from vinetwin.sim.prune_mcap import Track, write_mcap
-from vinetwin.sim.prune_sides import far_pose_ids, far_side_twin, merge, summary
+from vinetwin.sim.prune_sides import merge, summary
 from vinetwin.sim.straight import (
     CUT_DT,
     SETTLED_SPEED,
