@@ -160,7 +160,7 @@ class JobConfig(JsonFields):
     sides: Literal["near", "both"] = "both"
     """near: the platform works the robot's side of the row only (a pose looking at the row from
     its far side is skipped by name); both: those poses are pruned in a second pass from the
-    far side's aisle (`sim.prune_sides`), the vine's time the sum of both passes."""
+    far side's aisle (`plan.sides`, `sim.prune_sides`), the vine's time the sum of both passes."""
 
     def __post_init__(self) -> None:
         self._nested_from_dicts()
