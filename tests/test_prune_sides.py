@@ -97,3 +97,23 @@ def test_a_far_curtain_is_approached_from_the_far_side() -> None:
             SearchConfig(**bad)  # type: ignore[arg-type]
     with pytest.raises(InputError, match="sides must be near or both"):
         JobConfig(sides="far")  # type: ignore[arg-type]
+
+
+def test_the_field_twin_sweep_covers_the_far_aisle_when_a_pose_looks_from_there(
+    tmp_path: Path, sample_twin_dir: Path
+) -> None:
+    """`vinetwin validate`'s grid capture: with a pose looking from +Y, half its frames come from
+    the far aisle, over the same stretch of the row; without one, every frame from -Y."""
+    from vinetwin.reconstruct.synthetic import sweep_poses
+
+    twin, back = _with_a_far_pose(tmp_path, sample_twin_dir)
+    views = sweep_poses(twin, 21)
+    look = np.array([T[:3, 2] for T in views])
+    cams = np.array([T[:3, 3] for T in views])
+    near = look[:, 1] > 0
+    assert (near.sum(), (~near).sum()) == (11, 10)
+    assert cams[near, 1].max() < 0 < cams[~near, 1].min()
+    for side in (near, ~near):  # both along the sample's whole row (x -0.7 to 0.7 m)
+        assert cams[side, 0].min() < -0.3 and cams[side, 0].max() > 0.3
+    twin.delete_pose(back)
+    assert all(T[1, 2] > 0 for T in sweep_poses(twin, 21))

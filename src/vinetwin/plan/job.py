@@ -28,9 +28,8 @@ from vinetwin.plan.reach import (
     stop_pose,
 )
 from vinetwin.twin.model import Twin
+from vinetwin.twin.poses import from_far_side
 
-#: A pose whose optical axis points this much towards -Y looks at the row from the far side.
-FAR_SIDE = 0.1
 #: Stops tried per pose, nearest first, stop once this many reach it (the set cover rarely
 #: needs more choice than that, and the stops beyond cost most: their IK fails).
 MAX_STOPS_PER_POSE = 5
@@ -99,7 +98,7 @@ def plan_vine(
         )
     rng = np.random.default_rng(seed)
     plan = VinePlan()
-    near = [p for p in poses if np.asarray(p.T_vine_camera, float)[1, 2] > -FAR_SIDE]
+    near = [p for p in poses if not from_far_side(p.T_vine_camera)]
     for p in poses:
         if p not in near:
             plan.unreachable[p.id] = (

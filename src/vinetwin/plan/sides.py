@@ -14,9 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from vinetwin.frames import Array
-from vinetwin.plan.job import FAR_SIDE
 from vinetwin.twin.model import CutPoint, PruningPose, Twin
-from vinetwin.twin.poses import Approach
+from vinetwin.twin.poses import Approach, from_far_side
 
 #: The half turn about the vine frame's Z axis: the far aisle's view of the vine (its own
 #: inverse).
@@ -27,8 +26,8 @@ FAR_FOLDER = "far_side.twin"
 
 
 def far_pose_ids(twin: Twin) -> list[str]:
-    """The poses that look at the row from its far side (`plan.job.FAR_SIDE`)."""
-    return [p.id for p in twin.poses if float(np.asarray(p.T_vine_camera)[1, 2]) <= -FAR_SIDE]
+    """The poses that look at the row from its far side (`twin.poses.from_far_side`)."""
+    return [p.id for p in twin.poses if from_far_side(p.T_vine_camera)]
 
 
 def turned(points: Array) -> Array:

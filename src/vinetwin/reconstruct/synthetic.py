@@ -21,6 +21,7 @@ from vinetwin.frames import Array, look_at, make_pose, so3_exp, transform_points
 from vinetwin.render.backends import raycaster
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
 from vinetwin.twin.model import Twin
+from vinetwin.twin.poses import from_far_side
 
 
 def bark_colour(points: Array) -> np.ndarray:
@@ -39,14 +40,32 @@ def bark_colour(points: Array) -> np.ndarray:
 
 
 def sweep_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
-    """Camera poses (vine frame) on a grid in front of the vine, each looking at the vine."""
+    """Camera poses (vine frame) on a grid in front of the vine, each looking at the vine: from
+    the robot's side (-Y), and from the far aisle too, half the frames, when some of the twin's
+    pruning poses look at the row from there (`twin.poses.from_far_side`: a far curtain pruned
+    in `prune`'s far pass); from there alone when all do."""
     V = np.asarray(twin.load_mesh().vertices)
     lo, hi = np.percentile(V, 2, axis=0), np.percentile(V, 98, axis=0)
+    far = [from_far_side(p.T_vine_camera) for p in twin.poses]
+    sides = ([False] if not (far and all(far)) else []) + ([True] if any(far) else [])
+    # the far aisle's grid: the near one turned half a turn about the plant's vertical centre line
+    c = 0.5 * (lo + hi)
+    turn = make_pose(np.diag([-1.0, -1.0, 1.0]), [2 * c[0], 2 * c[1], 0.0])
+    poses = []
+    for k, side in enumerate(sides):
+        n = frames // len(sides) + (1 if k < frames % len(sides) else 0)
+        grid = _grid(lo, hi, n, distance)
+        poses += [turn @ T for T in grid] if side else grid
+    return poses
+
+
+def _grid(lo: Array, hi: Array, frames: int, distance: float) -> list[Array]:
+    """`frames` viewpoints on a grid over the plant's extent (`lo`, `hi`) on the robot's side."""
     # the part with the canes: upper half of the vine's height
     zc = lo[2] + 0.6 * (hi[2] - lo[2])
     cols = max(2, round(float(np.sqrt(frames * 2))))
     rows = max(1, int(np.ceil(frames / cols)))
-    poses = []
+    poses: list[Array] = []
     for r in range(rows):
         for c in range(cols):
             if len(poses) == frames:

@@ -229,6 +229,7 @@ def reconstructed_twin(
     from vinetwin.reconstruct.config import FusionConfig
     from vinetwin.reconstruct.pipeline import ReconstructConfig, reconstruct
     from vinetwin.reconstruct.synthetic import synthetic_capture
+    from vinetwin.twin.poses import from_far_side
 
     fusion = FusionConfig()  # what `reconstruct` fuses with: its clean-up rule names the cache
     key = {
@@ -240,6 +241,10 @@ def reconstructed_twin(
         "debris": [fusion.min_component, fusion.min_component_extent],
         **({"trajectory": profile.twin_trajectory} if profile.twin_trajectory != "grid" else {}),
     }
+    if profile.twin_trajectory == "grid" and any(
+        from_far_side(p.T_vine_camera) for p in twin.poses
+    ):
+        key["far_aisle"] = True  # the sweep covers the far aisle too (`sweep_poses`)
     digest = json_sha256(key)[:16]
     out = Path(cache) / f"twin_{digest}"
     mesh, report = out / "rebuilt.twin", out / "reconstruction.json"

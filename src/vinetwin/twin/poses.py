@@ -106,6 +106,16 @@ def pruning_pose(
     return make_pose(np.column_stack([x, y, z]), p - ap.standoff * z)
 
 
+#: A pose whose optical axis points this much towards -Y looks at the row from its far side (the
+#: aisle beyond the row, +Y; the robot's side is -Y).
+FAR_SIDE = 0.1
+
+
+def from_far_side(T_vine_camera: Any) -> bool:
+    """Whether a camera pose looks at the row from its far side (`FAR_SIDE`)."""
+    return float(np.asarray(T_vine_camera, dtype=np.float64)[1, 2]) <= -FAR_SIDE
+
+
 def default_approach(
     cane_axis: Any, standoff: float = DEFAULT_STANDOFF, toward: Any = DEFAULT_TOWARD
 ) -> Approach:
