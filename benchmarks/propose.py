@@ -211,10 +211,9 @@ def agreement(name: str, work: Path, seed: int = 0) -> dict[str, Any]:
     from scan_accuracy import truth_skeleton, write_ply
 
     from vinetwin.scan.config import ScanImportConfig
-    from vinetwin.scan.frame import transform_skeleton
     from vinetwin.scan.importer import import_scan
     from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
-    from vinetwin.twin.skeleton import DEFAULT_INTERNODE, tube_mesh
+    from vinetwin.twin.skeleton import DEFAULT_INTERNODE, transform_skeleton, tube_mesh
 
     truth = _sample3() if name == "sample" else truth_skeleton(name)
     V, F = tube_mesh(truth, edge=0.003, caps="round")

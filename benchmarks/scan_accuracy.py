@@ -27,10 +27,9 @@ import numpy as np
 from vinetwin.reconstruct.synthetic import d405_scan
 from vinetwin.scan.config import ScanImportConfig
 from vinetwin.scan.evaluate import mesh_accuracy, skeleton_accuracy
-from vinetwin.scan.frame import transform_skeleton
 from vinetwin.scan.importer import import_scan
 from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
-from vinetwin.twin.skeleton import Skeleton, tube_mesh
+from vinetwin.twin.skeleton import Skeleton, transform_skeleton, tube_mesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results_file import machine

@@ -18,13 +18,12 @@ from vinetwin.errors import ScanError, TwinError
 from vinetwin.scan.candidates import cut_candidates
 from vinetwin.scan.config import ScanImportConfig
 from vinetwin.scan.evaluate import skeleton_accuracy
-from vinetwin.scan.frame import transform_skeleton
 from vinetwin.scan.importer import analyse_scan, import_scan, scan_frame_pose
 from vinetwin.scan.read import detect_units, read_scan
 from vinetwin.scan.synthetic import QUALITY_LADDER, scanner_frame, simulate_scan
 from vinetwin.twin.generator import generate_vine
 from vinetwin.twin.model import Twin
-from vinetwin.twin.skeleton import Skeleton, tube_mesh
+from vinetwin.twin.skeleton import Skeleton, transform_skeleton, tube_mesh
 
 Q = QUALITY_LADDER["realistic"]
 

@@ -13,13 +13,12 @@ from tests.test_scan import _ply_cloud, _tube_points
 from vinetwin.errors import ScanError
 from vinetwin.scan.config import ScanImportConfig
 from vinetwin.scan.evaluate import skeleton_accuracy
-from vinetwin.scan.frame import transform_skeleton
 from vinetwin.scan.importer import analyse_scan, import_scan
 from vinetwin.scan.read import detect_units
 from vinetwin.scan.row import find_feet, split_plants
 from vinetwin.scan.synthetic import QUALITY_LADDER, simulate_scan
 from vinetwin.twin.generator import generate_vine
-from vinetwin.twin.skeleton import tube_mesh
+from vinetwin.twin.skeleton import transform_skeleton, tube_mesh
 
 UP = np.array([0.0, 0.0, 1.0])
 SPACING = 1.4

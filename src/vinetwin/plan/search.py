@@ -39,6 +39,7 @@ from vinetwin.frames import Array
 from vinetwin.plan.config import BodyConfig, SearchConfig
 from vinetwin.plan.job_config import ReachConfig
 from vinetwin.twin.poses import (
+    DEFAULT_TOWARD,
     Approach,
     default_approach,
     direction_from_angles,
@@ -310,7 +311,7 @@ def search_pose(
     cut = np.asarray(cut, dtype=np.float64)
     axis = np.asarray(cane_axis, dtype=np.float64)
     axis = axis / np.linalg.norm(axis)
-    dflt = default_approach(axis, cfg.standoff, (0.0, -1.0, 0.0) if far else (0.0, 1.0, 0.0))
+    dflt = default_approach(axis, cfg.standoff, -DEFAULT_TOWARD if far else DEFAULT_TOWARD)
     default = Candidate(dflt, float(_clearances(obs, cut, axis, [dflt], cfg, wrist)[0]))
     _sight(obs, default, cut, axis, cane, radius)
     found = Found(None, "", default, 0)

@@ -13,13 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from vinetwin.frames import Array
+from vinetwin.frames import transform_points
 from vinetwin.twin.model import CutPoint, PruningPose, Twin
-from vinetwin.twin.poses import Approach, from_far_side
+from vinetwin.twin.poses import HALF_TURN, Approach, from_far_side
+from vinetwin.twin.skeleton import transform_skeleton
 
-#: The half turn about the vine frame's Z axis: the far aisle's view of the vine (its own
-#: inverse).
-HALF_TURN = np.diag([-1.0, -1.0, 1.0, 1.0])
 #: The far pass's twin, inside the vine's twin folder (a twin inside another is that twin's, not
 #: a row's: `twin.model.find_twins`).
 FAR_FOLDER = "far_side.twin"
@@ -30,25 +28,31 @@ def far_pose_ids(twin: Twin) -> list[str]:
     return [p.id for p in twin.poses if from_far_side(p.T_vine_camera)]
 
 
-def turned(points: Array) -> Array:
-    """Points (N, 3) of the vine frame as the far aisle sees them (and back)."""
-    return np.asarray(points, float) @ HALF_TURN[:3, :3].T
-
-
 def far_side_twin(
     twin: Twin, pose_ids: list[str], dest: Path | None = None, write: bool = True
 ) -> Twin:
-    """The twin seen from the row's far aisle (see the module), holding the poses `pose_ids` and
-    their cut points under the same ids; the camera, hand-eye and tool transforms and the
-    perception settings are the twin's. Written to `dest` (default TWIN/far_side.twin, replaced
-    each time) with its mesh and skeleton turned; with `write` False only in memory (its mesh:
-    `turned` of the twin's vertices)."""
+    """The twin seen from the row's far aisle (see the module: `twin.poses.HALF_TURN`), holding
+    the poses `pose_ids` and their cut points under the same ids; the camera, hand-eye and tool
+    transforms and the perception settings are the twin's. Written to `dest` (default
+    TWIN/far_side.twin, replaced each time) with its mesh and skeleton turned; with `write`
+    False only in memory (its mesh: the twin's vertices turned, `frames.transform_points`)."""
     dest = dest or twin.root / FAR_FOLDER
+    name = f"{twin.name} (far side)"
+    if write:
+        if dest.exists():
+            shutil.rmtree(dest)
+        mesh = twin.load_mesh()
+        sk = twin.load_skeleton()
+        far = Twin.create(dest, transform_points(HALF_TURN, mesh.vertices), np.asarray(mesh.faces),
+                          name=name, camera=twin.camera,
+                          skeleton=None if sk is None else transform_skeleton(sk, HALF_TURN),
+                          source={"far_side_of": str(twin.root)})  # fmt: skip
+    else:
+        far = Twin(root=dest, name=name, camera=twin.camera)
+    far.T_world_vine = np.asarray(twin.T_world_vine, float) @ HALF_TURN
+    far.T_flange_camera, far.T_flange_tool = twin.T_flange_camera, twin.T_flange_tool
+    far.perception = twin.perception
     R = HALF_TURN[:3, :3]
-    far = Twin(root=dest, name=f"{twin.name} (far side)", camera=twin.camera,
-               T_world_vine=np.asarray(twin.T_world_vine, float) @ HALF_TURN,
-               T_flange_camera=twin.T_flange_camera, T_flange_tool=twin.T_flange_tool,
-               perception=twin.perception)  # fmt: skip
     for pid in pose_ids:
         p = twin.pose(pid)
         c = twin.cut_point(p.cut_point)
@@ -61,22 +65,6 @@ def far_side_twin(
             p.icp_variant, p.name,
             Approach(ap.standoff, math.remainder(ap.azimuth + math.pi, 2 * math.pi),
                      ap.elevation, ap.roll), dict(p.extra)))  # fmt: skip
-    if not write:
-        return far
-    if dest.exists():
-        shutil.rmtree(dest)
-    mesh = twin.load_mesh()
-    sk = twin.load_skeleton()
-    if sk is not None:
-        for b in sk.branches:
-            b.points = turned(b.points)
-        for cand in sk.candidates:
-            cand.point, cand.cane_axis = R @ cand.point, R @ cand.cane_axis
-    out = Twin.create(dest, turned(mesh.vertices), np.asarray(mesh.faces), name=far.name,
-                      camera=twin.camera, skeleton=sk,
-                      source={"far_side_of": str(twin.root)})  # fmt: skip
-    out.T_world_vine, out.perception = far.T_world_vine, far.perception
-    out.T_flange_camera, out.T_flange_tool = far.T_flange_camera, far.T_flange_tool
-    out.cut_points, out.poses = far.cut_points, far.poses
-    out.save()
-    return out
+    if write:
+        far.save()
+    return far

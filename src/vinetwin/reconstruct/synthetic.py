@@ -21,7 +21,7 @@ from vinetwin.frames import Array, look_at, make_pose, so3_exp, transform_points
 from vinetwin.render.backends import raycaster
 from vinetwin.render.sensor import SensorConfig, apply_d405_model
 from vinetwin.twin.model import Twin
-from vinetwin.twin.poses import from_far_side
+from vinetwin.twin.poses import HALF_TURN, from_far_side
 
 
 def bark_colour(points: Array) -> np.ndarray:
@@ -46,17 +46,23 @@ def sweep_poses(twin: Twin, frames: int, distance: float = 0.3) -> list[Array]:
     in `prune`'s far pass); from there alone when all do."""
     V = np.asarray(twin.load_mesh().vertices)
     lo, hi = np.percentile(V, 2, axis=0), np.percentile(V, 98, axis=0)
-    far = [from_far_side(p.T_vine_camera) for p in twin.poses]
-    sides = ([False] if not (far and all(far)) else []) + ([True] if any(far) else [])
+    sides = sweep_sides(twin)
     # the far aisle's grid: the near one turned half a turn about the plant's vertical centre line
     c = 0.5 * (lo + hi)
-    turn = make_pose(np.diag([-1.0, -1.0, 1.0]), [2 * c[0], 2 * c[1], 0.0])
+    turn = make_pose(HALF_TURN[:3, :3], [2 * c[0], 2 * c[1], 0.0])
     poses = []
     for k, side in enumerate(sides):
         n = frames // len(sides) + (1 if k < frames % len(sides) else 0)
         grid = _grid(lo, hi, n, distance)
         poses += [turn @ T for T in grid] if side else grid
     return poses
+
+
+def sweep_sides(twin: Twin) -> list[bool]:
+    """The aisles a grid sweep of the twin covers (False: the robot's, True: the far one): see
+    `sweep_poses`."""
+    far = [from_far_side(p.T_vine_camera) for p in twin.poses]
+    return ([False] if not (far and all(far)) else []) + ([True] if any(far) else [])
 
 
 def _grid(lo: Array, hi: Array, frames: int, distance: float) -> list[Array]:

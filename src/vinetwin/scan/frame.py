@@ -97,17 +97,6 @@ def vine_from_scan(up: Array, x: Array, origin: Array) -> Array:
     return T
 
 
-def transform_skeleton(sk: Skeleton, T: Array) -> Skeleton:
-    """The skeleton with its points mapped by the 4x4 `T` (rigid), in place; returned."""
-    R, t = T[:3, :3], T[:3, 3]
-    for b in sk.branches:
-        b.points = b.points @ R.T + t
-    for c in sk.candidates:
-        c.point = R @ c.point + t
-        c.cane_axis = R @ c.cane_axis
-    return sk
-
-
 def split_trunk(sk: Skeleton, up: Array) -> None:
     """Splits the root branch where it bends from vertical to horizontal (a cordon leaving the
     trunk's head, which the skeleton followed as one chain); in place. Children past the bend

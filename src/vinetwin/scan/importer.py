@@ -33,7 +33,6 @@ from vinetwin.scan.frame import (
     row_axis,
     split_cordons,
     split_trunk,
-    transform_skeleton,
     vine_from_scan,
 )
 from vinetwin.scan.read import (
@@ -47,7 +46,7 @@ from vinetwin.scan.refine import straighten_bumps
 from vinetwin.scan.result import ScanImport
 from vinetwin.scan.row import find_feet, plants_of_row, split_plants
 from vinetwin.scan.skeletonize import skeletonize
-from vinetwin.twin.skeleton import Skeleton
+from vinetwin.twin.skeleton import Skeleton, transform_skeleton
 
 if TYPE_CHECKING:
     from vinetwin.twin.model import Twin

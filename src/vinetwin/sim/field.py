@@ -228,8 +228,7 @@ def reconstructed_twin(
     Cached under `cache` by its inputs; returns (mesh path, evaluation)."""
     from vinetwin.reconstruct.config import FusionConfig
     from vinetwin.reconstruct.pipeline import ReconstructConfig, reconstruct
-    from vinetwin.reconstruct.synthetic import synthetic_capture
-    from vinetwin.twin.poses import from_far_side
+    from vinetwin.reconstruct.synthetic import sweep_sides, synthetic_capture
 
     fusion = FusionConfig()  # what `reconstruct` fuses with: its clean-up rule names the cache
     key = {
@@ -241,10 +240,8 @@ def reconstructed_twin(
         "debris": [fusion.min_component, fusion.min_component_extent],
         **({"trajectory": profile.twin_trajectory} if profile.twin_trajectory != "grid" else {}),
     }
-    if profile.twin_trajectory == "grid" and any(
-        from_far_side(p.T_vine_camera) for p in twin.poses
-    ):
-        key["far_aisle"] = True  # the sweep covers the far aisle too (`sweep_poses`)
+    if profile.twin_trajectory == "grid" and True in sweep_sides(twin):
+        key["far_aisle"] = True  # the sweep covers the far aisle too
     digest = json_sha256(key)[:16]
     out = Path(cache) / f"twin_{digest}"
     mesh, report = out / "rebuilt.twin", out / "reconstruction.json"

@@ -12,13 +12,14 @@ from typing import Any
 
 import numpy as np
 
-from vinetwin.plan.sides import turned
+from vinetwin.frames import transform_points
 from vinetwin.twin.model import Twin
+from vinetwin.twin.poses import HALF_TURN
 
 
 def _back(point: Any) -> Any:
     """A point of the far twin in the vine frame."""
-    return None if point is None else turned(np.asarray(point, float)[None])[0].tolist()
+    return None if point is None else transform_points(HALF_TURN, [point])[0].tolist()
 
 
 def merge(near: dict[str, Any], far: dict[str, Any], twin: Twin) -> dict[str, Any]:

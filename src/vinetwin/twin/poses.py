@@ -111,6 +111,11 @@ def pruning_pose(
 FAR_SIDE = 0.1
 
 
+#: The half turn about the vine frame's vertical axis (x -> -x, y -> -y): the row seen from its
+#: far aisle, which is then the robot's side (its own inverse).
+HALF_TURN: Array = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
 def from_far_side(T_vine_camera: Any) -> bool:
     """Whether a camera pose looks at the row from its far side (`FAR_SIDE`)."""
     return float(np.asarray(T_vine_camera, dtype=np.float64)[1, 2]) <= -FAR_SIDE

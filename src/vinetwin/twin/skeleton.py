@@ -556,3 +556,14 @@ def tube_mesh(
         fs.append(F + off)
         off += len(V)
     return np.concatenate(vs), np.concatenate(fs)
+
+
+def transform_skeleton(sk: Skeleton, T: Array) -> Skeleton:
+    """The skeleton with its points mapped by the 4x4 `T` (rigid), in place; returned."""
+    R, t = T[:3, :3], T[:3, 3]
+    for b in sk.branches:
+        b.points = b.points @ R.T + t
+    for c in sk.candidates:
+        c.point = R @ c.point + t
+        c.cane_axis = R @ c.cane_axis
+    return sk

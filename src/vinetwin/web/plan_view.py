@@ -47,9 +47,11 @@ def describe(result: Any, far: Any = None) -> str:
 
 def plan(app: Any) -> None:
     """Plans the twin's job (seconds on a dense vine: the panel says so meanwhile) and draws it."""
+    from vinetwin.frames import transform_points
     from vinetwin.plan.job import Planner, plan_vine
     from vinetwin.plan.reach import stop_pose
-    from vinetwin.plan.sides import HALF_TURN, far_pose_ids, far_side_twin, turned
+    from vinetwin.plan.sides import far_pose_ids, far_side_twin
+    from vinetwin.twin.poses import HALF_TURN
 
     app.plan_status.content = "*Planning the job: platform stops, reach, order...*"
     with app.lock:
@@ -63,7 +65,8 @@ def plan(app: Any) -> None:
             far_ids, far, far_planner = far_pose_ids(twin), None, None
             if far_ids:  # `prune`'s far pass: the twin seen from the far aisle
                 far_twin = far_side_twin(twin, far_ids, write=False)
-                far_planner = Planner.for_twin(far_twin, mesh=(turned(sess.vertices), sess.faces))
+                V = transform_points(HALF_TURN, sess.vertices)
+                far_planner = Planner.for_twin(far_twin, mesh=(V, sess.faces))
                 far = plan_vine(far_twin, far_planner)
                 for pid in far_ids:
                     result.unreachable.pop(pid, None)
