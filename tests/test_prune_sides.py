@@ -79,6 +79,7 @@ def test_the_far_aisle_prunes_what_the_near_one_cannot(
     cut = twin.cut_point(twin.pose(back).cut_point).point
     np.testing.assert_allclose(c["point"], cut, atol=1e-9)  # in the vine frame
     assert by_pose["p3"]["side"] == "near" and by_pose["p3"]["status"] == "done"
+    assert [c["side"] for c in both["cuts"]] == ["near", "far"]  # the order they were done in
     s = both["summary"]
     assert (s["poses"], s["reachable"], s["done"], s["far_side_poses"]) == (2, 2, 2, 1)
     assert s["simulated_s"] > near["summary"]["simulated_s"] + c["time_s"] - 1e-9

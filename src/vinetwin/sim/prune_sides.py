@@ -25,7 +25,8 @@ def _back(point: Any) -> Any:
 def merge(near: dict[str, Any], far: dict[str, Any], twin: Twin) -> dict[str, Any]:
     """One vine's result from its two passes: the near pass's, its cuts on far-side poses
     replaced by the far pass's (`side` says which pass did each; points and stops in the vine
-    frame, a far stop at x along the row from the far aisle is -x), the far plan as
+    frame, a far stop at x along the row from the far aisle is -x; each pass's cuts in the order
+    it did them, as the report's timeline draws them, the near pass first), the far plan as
     `plan.far_side`, collisions, contacts, events, transits, planning and times added."""
     done_far = {c["pose"] for c in far["cuts"]}
     cuts = [{**c, "side": "near"} for c in near["cuts"] if c["pose"] not in done_far]
@@ -33,8 +34,6 @@ def merge(near: dict[str, Any], far: dict[str, Any], twin: Twin) -> dict[str, An
         stop = c.get("stop")
         cuts.append({**c, "side": "far", "point": _back(c.get("point")),
                      "stop": None if stop is None else -stop})  # fmt: skip
-    order = {p.id: i for i, p in enumerate(twin.poses)}
-    cuts.sort(key=lambda c: (c["side"] == "far", order.get(c["pose"], 0)))
     plan = dict(near["plan"])
     fp = dict(far["plan"])
     fp["stops"] = [-s for s in fp.get("stops", [])]
