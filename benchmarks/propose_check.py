@@ -9,7 +9,7 @@ draw shows no gain there. The GDC and the apple use a field profile capturing th
 around the poses (`"twin_trajectory": "poses"`), as the table of `docs/proposals.md` does.
 
     .venv/bin/python benchmarks/propose_check.py [--plants sample dense ...] [--rules spur cane]
-        [--json benchmarks/results/propose_check.json]
+        [--json benchmarks/results/propose_check.json [--update]]
 
 Prints, per plant and rule, the poses and how many converge from all 4 starts (and from at
 least 3): the check's own runs at seed 0, then both twins at seed 1.
@@ -89,6 +89,9 @@ def main() -> None:
     ap.add_argument("--rules", nargs="*", default=["spur", "cane"])
     ap.add_argument("--keep", type=Path, help="leave the twins in this folder")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--update", action="store_true",
+                    help="replace in --json only the rows of the plants and rules run now; the "
+                         "others keep theirs (each row names the commit it was measured at)")  # fmt: skip
     a = ap.parse_args()
     work = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="propose-check-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -122,8 +125,17 @@ def main() -> None:
             f"| all | | {n} | {tot[0]} ({tot[1]}) | {tot[2]} ({tot[3]}) | {tot[4]} ({tot[5]}) | |"
         )
     if a.json:
+        here = machine()
+        for r in rows:
+            r["commit"] = here["commit"]
+        if a.update and a.json.exists():
+            old = json.loads(a.json.read_text())
+            for r in old["rows"]:
+                r.setdefault("commit", old["machine"]["commit"])
+            new = {r["twin"]: r for r in rows}
+            rows = [new.pop(r["twin"], r) for r in old["rows"]] + list(new.values())
         a.json.write_text(json.dumps({
-            "machine": machine(),
+            "machine": here,
             "settings": {"profile": "field (gdc_can1, apple_spindle: field with twin_trajectory "
                                     "poses)", "variant": "point_to_plane", "starts": 4,
                          "radius_translation": 0.05, "radius_rotation": 0.15,
