@@ -258,3 +258,20 @@ def test_scan_accuracy_benchmark_on_a_generated_vine_of_another_seed(tmp_path: P
     assert row["plant"] == "sample@2" and "| sample@2 |" in proc.stdout
     assert row["candidates_true"] == 8 and row["canes_seen"] == 10, row
     assert row["completeness"] >= 0.98 and row["precision"] >= 0.98, row
+
+
+def test_scan_up_benchmark_on_the_bundled_trees(tmp_path: Path) -> None:
+    """`scan_up.py` scans each tree model of a folder without ground and reports the up found:
+    the bundled spindle apple at the coarse quality stands within 5 degrees, from its trunk."""
+    from tests.conftest import shared
+
+    trees = tmp_path / "trees"
+    trees.mkdir()
+    name = "Apple_1_TallSpindle.txt"
+    (trees / name).write_bytes(shared("trees", "tree-models-library", name).read_bytes())
+    out = tmp_path / "up.json"
+    proc, data = _quick("scan_up.py", out, "--trees", str(trees), "--qualities", "coarse")
+    (row,) = data["rows"]
+    assert row["tree"] == "Apple_1_TallSpindle" and row["up_error_deg"] <= 5.0, row
+    assert "the trunk's direction" in row["up_from"] and not row["uncertain"], row
+    assert "1 of 1 scans within 5 degrees" in proc.stdout

@@ -453,8 +453,41 @@ def test_a_tree_scanned_without_ground_stands_up_and_its_skeleton_matches(
     scan = analyse_scan(f, ScanImportConfig(plant="tree"))
     T = scan.T_vine_scan @ T_sv
     assert np.degrees(np.arccos(np.clip(T[2, 2], -1, 1))) < 1.0, scan.up_from
+    assert "the trunk's direction" in scan.up_from and not scan.notes, (scan.up_from, scan.notes)
     acc = skeleton_accuracy(scan.skeleton, transform_skeleton(truth(), T), "tree", 0.07)
     assert acc.completeness >= 0.9 and acc.precision >= 0.9, acc
+
+
+def test_a_foot_taken_at_a_crown_tip_is_turned_upright_and_said(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The spindle apple scanned without ground, its foot taken at the crown tip farthest from
+    the true one (as the thickest end was on an apple of the library's, whose scan then stood
+    upside down): the trunk's direction from there points down, and the axis of the plant's
+    thickest stretch, the trunk, turns it upright; the import says the up axis is uncertain.
+    (On a Y-trellis whose arms are as thick as its trunk the stretch runs into an arm and does
+    not help: docs/scans.md.)"""
+    from vinetwin.scan import skeletonize as skz
+    from vinetwin.twin.importers import read_cylinders
+
+    honest = skz._LevelTree.thickest_end_points
+
+    def crown_tip(self: Any) -> np.ndarray:
+        true_foot = self.P[honest(self)].mean(0)
+        ends = [chain[-1] for chain, _ in self.chains()]
+        return self.members[max(ends, key=lambda k: np.linalg.norm(self.centre[k] - true_foot))]
+
+    monkeypatch.setattr(skz._LevelTree, "thickest_end_points", crown_tip)
+    truth = read_cylinders(shared("trees", "tree-models-library", "Apple_1_TallSpindle.txt"))
+    V, F = tube_mesh(truth, edge=0.004, caps="round")
+    P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], 1)
+    T_sv = scanner_frame(1)
+    f = _ply_cloud(tmp_path / "tree.ply", P @ T_sv[:3, :3].T + T_sv[:3, 3])
+    scan = analyse_scan(f, ScanImportConfig(plant="tree"))
+    T = scan.T_vine_scan @ T_sv
+    assert np.degrees(np.arccos(np.clip(T[2, 2], -1, 1))) < 1.0, scan.up_from
+    assert "thickest stretch" in scan.up_from, scan.up_from
+    assert any("up axis is uncertain" in n for n in scan.notes), scan.notes
 
 
 def test_a_level_cane_is_not_a_cordon_and_a_cordon_running_on_into_a_cane_is_split() -> None:

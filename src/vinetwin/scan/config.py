@@ -104,8 +104,9 @@ class ScanImportConfig:
     """Units of the file's coordinates; auto: from the plant's size and point spacing."""
     up: UpAxis = "auto"
     """The scan's up axis; auto: the ground plane's normal, else the trunk's direction (the
-    direction from its foot to the plant's mass when the two disagree; name it for a tree
-    scanned without ground, see docs/scans.md)."""
+    direction from its foot to the plant's mass when the two disagree; the axis of its thickest
+    stretch when that says the foot is reversed); name it for a tree scanned without ground,
+    see docs/scans.md."""
     plant: PlantKind = "vine"
     """vine: trunk, cordons, spurs, canes; a cut candidate where each cane would be shortened to
     a two-bud spur. tree: a trunk and branches; a candidate where each shoot stands 3 cm off

@@ -117,9 +117,8 @@ def analyse_scan(
         assert found.up is not None
         up, up_from = guess_up(found.up, found.up_from)
         if not found.up_trusted:
-            notes.append("the up axis is uncertain: the trunk's direction and the plant's mass "
-                         "over its foot disagree; look at the report's picture, or name --up "
-                         "(or scan the ground)")  # fmt: skip
+            notes.append(f"the up axis is uncertain (from {found.up_from}): look at the "
+                         "report's picture, or name --up (or scan the ground)")  # fmt: skip
     if cl.wires:
         m = find_wires(pts, up, spacing, rng)
         removed_scan["wire"], pts = pts[m], pts[~m]

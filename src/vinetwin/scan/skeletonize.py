@@ -127,6 +127,24 @@ TRUST_TRUNK = 30.0
 direction (measured: 0.2-2 degrees from the truth on the generated, hydroshoot and apple
 plants, where the mass lay 2-9 degrees off; the hydroshoot GDC vine's trunk leans 13-24)."""
 
+REVERSED = 120.0
+"""Degrees: the up found from the foot (its trunk's direction, or the plant's mass over it) is
+taken for reversed when it lies farther than this from the axis of the plant's thickest
+stretch (`thickest_stretch`), a cue that does not depend on which end was taken for the foot;
+the stretch's axis is then taken when the plant's mass lies within `TO_MASS` of it (on a
+Tree-Models-Library apple the thickest end was a crown tip's, and its scan stood upside down).
+Nearer than this, the stretch does not overrule the foot: it can run into a Y-trellis' arm and
+point down it (measured on 26 scans of 13 trees and 6 of the vines without ground: the
+stretch's axis within 1-38 degrees of the truth, but 138 degrees from it on a Y-trellis)."""
+
+TO_MASS = 45.0
+"""Degrees: the thickest stretch's axis is taken for up when the direction from its middle to
+the plant's mass lies within this of it."""
+
+THICK_SHARE = 0.6
+"""The thickest stretch: the nodes along the thickest node's chain at least this share of its
+radius."""
+
 BIN_VOXELS: dict[PlantKind, float] = {"vine": 4.0, "tree": 3.0}
 """The slice width in voxels when `SkeletonConfig.bin` is 0. A tree's laterals are short and
 leave thick limbs close together: thinner slices part them nearer their fork (measured on five
@@ -310,19 +328,62 @@ class _LevelTree:
         foot to the plant's mass (the mean of its voxels: a plant stands over its foot); else
         that direction (a short, thick trunk's slices zigzag and its own direction is not
         trusted: on the Tree-Models-Library's nectarine the trunk gave 46-64 degrees off, the
-        mass 13-15)."""
+        mass 13-15); either checked against the axis of the plant's thickest stretch, which does
+        not depend on the foot (`REVERSED`)."""
         chain = self._root_chain()
         mass = self.P.mean(0) - self.centre[chain[0]]
         mass /= max(float(np.linalg.norm(mass)), 1e-12)
         try:
             trunk = self.root_direction(chain)
         except ScanError:
-            return mass, "the plant's mass over its foot (the trunk's direction not found)", False
+            return self._checked(mass, "the plant's mass over its foot (the trunk's direction "
+                                       "not found)", False)  # fmt: skip
         off = float(np.degrees(np.arccos(np.clip(trunk @ mass, -1.0, 1.0))))
         if off <= TRUST_TRUNK:
-            return trunk, "the trunk's direction", True
-        return mass, (f"the plant's mass over its foot (the trunk's direction, {off:.0f} degrees "
-                      "from it, not trusted)"), False  # fmt: skip
+            return self._checked(trunk, "the trunk's direction", True)
+        return self._checked(mass, (f"the plant's mass over its foot (the trunk's direction, "
+                                    f"{off:.0f} degrees from it, not trusted)"), False)  # fmt: skip
+
+    def _checked(self, up: Array, what: str, trusted: bool) -> tuple[Array, str, bool]:
+        """`up` found from the foot, unless the thickest stretch says it is reversed
+        (`REVERSED`)."""
+        stretch = self.thickest_stretch()
+        if stretch is None:
+            return up, what, trusted
+        axis, to_mass = stretch
+        off = float(np.degrees(np.arccos(np.clip(up @ axis, -1.0, 1.0))))
+        if off <= REVERSED or to_mass > TO_MASS:
+            return up, what, trusted
+        return axis, (f"the axis of the plant's thickest stretch, towards its mass ({what}: "
+                      f"{off:.0f} degrees from it, the foot in doubt)"), False  # fmt: skip
+
+    def thickest_stretch(self) -> tuple[Array, float] | None:
+        """The principal axis of the plant's thickest stretch (on a plant, its trunk): the run
+        of nodes along the thickest node's chain at least `THICK_SHARE` of its radius (each a
+        median of 5 along the chain; one chain, so that a Y's two arms do not make it level),
+        pointing from its middle towards the plant's mass, and the angle (degrees) between the
+        two; None when the run has fewer than 3 nodes."""
+        best: tuple[float, list[int], int] | None = None
+        for chain, _ in self.chains():
+            rc = self.radius[chain]
+            med = np.array([np.median(rc[max(0, i - 2) : i + 3]) for i in range(len(chain))])
+            i = int(np.argmax(med))
+            if best is None or med[i] > best[0]:
+                lo, hi = i, i
+                while lo > 0 and med[lo - 1] >= THICK_SHARE * med[i]:
+                    lo -= 1
+                while hi < len(chain) - 1 and med[hi + 1] >= THICK_SHARE * med[i]:
+                    hi += 1
+                best = (float(med[i]), chain[lo : hi + 1], i)
+        if best is None or len(best[1]) < 3:
+            return None
+        Q = self.centre[best[1]]
+        axis = np.linalg.eigh(np.cov((Q - Q.mean(0)).T))[1][:, -1]
+        to_mass = self.P.mean(0) - Q.mean(0)
+        if axis @ to_mass < 0:
+            axis = -axis
+        cos = float(axis @ to_mass / max(float(np.linalg.norm(to_mass)), 1e-12))
+        return axis, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
     def skeleton(self) -> Skeleton:
         sk = Skeleton()
