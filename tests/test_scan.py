@@ -324,6 +324,29 @@ def _tube_points(a: np.ndarray, b: np.ndarray, r: float, step: float, rng: np.ra
     return P + rng.normal(0, 0.001, P.shape)
 
 
+def test_a_wire_under_a_cordon_running_beside_it_is_found_and_no_candidate_lies_on_it(
+    tmp_path: Path,
+) -> None:
+    """A unilateral vine (seed 41, no setting chosen on it) whose cordon runs 2-3 cm above its
+    wire for 0.45 m, scanned with its trellis: the wire is found and removed (`WIRE_CLEAR`; at
+    3 cm it was kept as two canes with a cut candidate on each), and every cut candidate lies
+    on the vine."""
+    from vinetwin.twin.generator import VineParams
+
+    sk = generate_vine(41, VineParams(cordons=1))
+    V, F = tube_mesh(sk, edge=0.003)
+    wire = float(sk.branches[0].points[-1][2])
+    P, _ = simulate_scan(V, F, dataclasses.replace(Q, trellis=True), seed=7, wire_height=wire)
+    scan = analyse_scan(_ply_cloud(tmp_path / "v.ply", P), ScanImportConfig(up="z"))
+    assert scan.counts()["wire"] > 200, scan.counts()  # 1.5 m of wire, 4 mm apart, 4 stations
+    truth = transform_skeleton(generate_vine(41, VineParams(cordons=1)), scan.T_vine_scan)
+    wood = np.concatenate([b.points for b in truth.branches])
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(wood).query([c.point for c in scan.skeleton.candidates])
+    assert len(d) and d.max() < 0.02, d
+
+
 def test_a_wire_through_the_wood_it_carries_is_found_and_the_wood_stays() -> None:
     """`find_wires`: a 2.4 m wire whose cordon lies on it for 10 cm every 30 cm (the dense
     generated vine's case, where the wire was kept) is found, and the cordon's points stay; a
