@@ -324,6 +324,37 @@ def _tube_points(a: np.ndarray, b: np.ndarray, r: float, step: float, rng: np.ra
     return P + rng.normal(0, 0.001, P.shape)
 
 
+def test_grass_under_a_vine_is_ground_clutter_and_the_trunk_stays(tmp_path: Path) -> None:
+    """A vine scanned with its trellis and 400 grass blades 6-20 cm tall around its foot (some
+    touching the trunk): the blades are removed as ground clutter (`CLUTTER_HEIGHT`), the
+    trunk's column is kept down to the ground, the foot is the vine's and the skeleton lies on
+    the vine (without it: 230 trunks, the foot on a blade, 13% precise); switched off, nothing
+    is removed as clutter."""
+    sk = generate_vine(46)
+    V, F = tube_mesh(sk, edge=0.003)
+    wire = float(sk.branches[0].points[-1][2])
+    P, _ = simulate_scan(V, F, dataclasses.replace(Q, trellis=True), seed=3, wire_height=wire)
+    rng = np.random.default_rng(1)
+    blades = []
+    for _ in range(400):
+        base = np.array([rng.uniform(-1, 1), rng.uniform(-0.4, 0.4), 0.0])
+        top = base + np.array([*rng.normal(0, 0.05, 2), rng.uniform(0.06, 0.2)])
+        t = rng.random(max(2, int(np.linalg.norm(top - base) / 0.004)))[:, None]
+        blades.append(base + t * (top - base) + rng.normal(0, 0.0015, (len(t), 3)))
+    G = np.concatenate(blades)
+    f = _ply_cloud(tmp_path / "grass.ply", np.concatenate([P, G]))
+    scan = analyse_scan(f, ScanImportConfig())
+    assert scan.counts()["clutter"] > 0.8 * len(G), (scan.counts(), len(G))
+    assert np.linalg.norm(scan.T_vine_scan[:2, 3]) < 0.02, scan.T_vine_scan  # the vine's foot
+    assert [b.kind for b in scan.skeleton.branches].count("trunk") == 1
+    acc = skeleton_accuracy(scan.skeleton, transform_skeleton(generate_vine(46), scan.T_vine_scan),
+                            "vine", 0.07)  # fmt: skip
+    assert acc.completeness > 0.97 and acc.precision > 0.95, acc
+    off = analyse_scan(f, ScanImportConfig(
+        clean=dataclasses.replace(ScanImportConfig().clean, clutter=False)))  # fmt: skip
+    assert off.counts()["clutter"] == 0
+
+
 def test_a_wire_under_a_cordon_running_beside_it_is_found_and_no_candidate_lies_on_it(
     tmp_path: Path,
 ) -> None:

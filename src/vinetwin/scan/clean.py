@@ -1,4 +1,5 @@
-"""Cleaning a scan before its skeleton: stray points, the ground, trellis wires, posts.
+"""Cleaning a scan before its skeleton: stray points, the ground, ground clutter (grass, weeds),
+trellis wires, posts.
 
 Each step returns a mask of the points it removes, so the importer can count them, report them
 and write them out to be looked at; each is switchable (`CleanConfig`)."""
@@ -82,6 +83,56 @@ def find_ground(points: Array, spacing: float, rng: np.random.Generator) -> Grou
         return None
     # everything at or below the plane (plus the band) is ground
     return Ground(dist <= thr, n, off)
+
+
+#: Ground clutter (grass, weeds, prunings on the ground): every point below `CLUTTER_HEIGHT`
+#: (m) above the ground but the columns of what reaches above it (a trunk, a post), each
+#: followed down from its ring just above, in layers of `CLUTTER_LAYER` (m), within its
+#: radius and `CLUTTER_MARGIN` (a trunk leans; grass touching it stays out). A vine's head
+#: stands 0.4 m up or more, an orchard tree's first limb higher; a cane hanging lower than
+#: this loses its end. Without it, 400 grass blades 6-20 cm tall around a generated vine's
+#: foot became 230 trunks, the foot moved onto a blade and 13% of the skeleton lay on the vine.
+CLUTTER_HEIGHT = 0.3
+CLUTTER_LAYER = 0.02
+#: A column holds what lies within its ring's radius and this (m) of its centre.
+CLUTTER_MARGIN = 0.015
+#: Points of one ring are joined within this many voxels.
+CLUTTER_LINK = 2.5
+
+
+def find_clutter(points: Array, up: Array, ground_offset: float, spacing: float) -> Mask:
+    """(N,) True for ground clutter (see `CLUTTER_HEIGHT`); `up` the ground's normal, the ground
+    {p : up . p = ground_offset}."""
+    from vinetwin.scan.skeletonize import radius_graph, voxel_thin
+
+    h = points @ up - ground_offset
+    low = np.flatnonzero(h < CLUTTER_HEIGHT)
+    mask = np.zeros(len(points), bool)
+    mask[low] = True
+    slab = (h >= CLUTTER_HEIGHT) & (h < CLUTTER_HEIGHT + CLUTTER_LAYER)
+    if not len(low) or not slab.any():
+        return mask
+    flat = points[low] - np.outer(points[low] @ up, up)
+    hl = h[low]
+    voxel = max(spacing, 0.004)
+    S, _ = voxel_thin(points[slab], voxel)
+    _, lab = csgraph.connected_components(radius_graph(S, CLUTTER_LINK * voxel), directed=False)
+    S = S - np.outer(S @ up, up)
+    layer = np.floor((CLUTTER_HEIGHT - hl) / CLUTTER_LAYER).astype(np.int64)
+    order = np.argsort(layer, kind="stable")
+    starts = np.searchsorted(layer[order], np.arange(layer.max() + 2))
+    for piece in range(lab.max() + 1):
+        ring = S[lab == piece]
+        centre = np.median(ring, 0)
+        reach = float(np.median(np.linalg.norm(ring - centre, axis=1))) + CLUTTER_MARGIN
+        for k in range(len(starts) - 1):
+            idx = order[starts[k] : starts[k + 1]]
+            idx = idx[np.linalg.norm(flat[idx] - centre, axis=1) < reach]
+            if not len(idx):
+                break
+            mask[low[idx]] = False
+            centre = np.median(flat[idx], 0)
+    return mask
 
 
 def find_wires(points: Array, up: Array, spacing: float, rng: np.random.Generator) -> Mask:

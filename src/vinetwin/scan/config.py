@@ -53,6 +53,9 @@ class CleanConfig:
     """Remove stray points: statistical outliers and small clusters apart from the plant."""
     ground: bool = True
     """Remove the ground: a large plane under the plant (its normal also gives the up axis)."""
+    clutter: bool = True
+    """Remove ground clutter (grass, weeds): what stands below 0.3 m above the ground
+    (`scan.clean.CLUTTER_HEIGHT`) but the trunks' and posts' columns; with the ground only."""
     wires: bool = True
     """Remove trellis wires: long (>= 1 m), thin, straight, horizontal lines of points."""
     posts: bool = True

@@ -19,7 +19,13 @@ import numpy as np
 from vinetwin.errors import ScanError, SeveralPlants, TwinError
 from vinetwin.frames import Array
 from vinetwin.scan.candidates import cut_candidates, label_kinds
-from vinetwin.scan.clean import find_ground, find_posts, find_wires, statistical_strays
+from vinetwin.scan.clean import (
+    find_clutter,
+    find_ground,
+    find_posts,
+    find_wires,
+    statistical_strays,
+)
 from vinetwin.scan.config import (
     PLANT_EXTENT,
     UNIT_SCALE,
@@ -111,6 +117,9 @@ def analyse_scan(
         up, up_from = ground.normal, "the ground plane's normal"
     if ground is not None:
         removed_scan["ground"], pts = pts[ground.mask], pts[~ground.mask]
+        if cl.clutter:
+            m = find_clutter(pts, ground.normal, ground.offset, spacing)
+            removed_scan["clutter"], pts = pts[m], pts[~m]
     step("clean")
     if up is None:
         found = skeletonize(pts, config.skeleton, spacing, None, config.plant)

@@ -3,8 +3,8 @@ the skeleton over the points (a picture from the front and from the side), each 
 and radius, the cut candidates, and with a truth twin the accuracy (`scan.evaluate`).
 
 Files: `report.md` (for people), `report.json` (the same figures), `skeleton.png`, and
-`removed.ply` (the removed points coloured by reason: stray red, ground brown, wire blue, post
-grey, apart orange, other plants of a row purple) to look at in any viewer."""
+`removed.ply` (the removed points coloured by reason: stray red, ground brown, clutter green,
+wire blue, post grey, apart orange, other plants of a row purple) to look at in any viewer."""
 
 from __future__ import annotations
 
@@ -25,8 +25,9 @@ if TYPE_CHECKING:
 
 KIND_COLOURS = {"trunk": "#5b3a1a", "cordon": "#a0522d", "spur": "#d2691e", "cane": "#2e8b57",
                 "shoot": "#7cfc00", "branch": "#1f77b4"}  # fmt: skip
-REMOVED_COLOURS = {"stray": (1, 0, 0), "ground": (0.55, 0.35, 0.15), "wire": (0, 0, 1),
-                   "post": (0.5, 0.5, 0.5), "apart": (1, 0.6, 0), "others": (0.6, 0.2, 0.8)}  # fmt: skip
+REMOVED_COLOURS = {"stray": (1, 0, 0), "ground": (0.55, 0.35, 0.15), "clutter": (0.4, 0.7, 0.2),
+                   "wire": (0, 0, 1), "post": (0.5, 0.5, 0.5), "apart": (1, 0.6, 0),
+                   "others": (0.6, 0.2, 0.8)}  # fmt: skip
 
 
 def plot_skeleton(

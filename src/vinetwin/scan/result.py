@@ -12,7 +12,7 @@ from vinetwin.scan.skeletonize import SkeletonResult
 from vinetwin.twin.skeleton import Skeleton
 
 #: Labels of removed points, in the order the report lists them.
-REMOVED = ("stray", "ground", "wire", "post", "apart", "others")
+REMOVED = ("stray", "ground", "clutter", "wire", "post", "apart", "others")
 
 
 @dataclass
