@@ -108,10 +108,10 @@ def find_clutter(points: Array, up: Array, ground_offset: float, spacing: float)
     h = points @ up - ground_offset
     low = np.flatnonzero(h < CLUTTER_HEIGHT)
     mask = np.zeros(len(points), bool)
-    mask[low] = True
     slab = (h >= CLUTTER_HEIGHT) & (h < CLUTTER_HEIGHT + CLUTTER_LAYER)
     if not len(low) or not slab.any():
-        return mask
+        return mask  # nothing stands above the band: no plant to tell the clutter from
+    mask[low] = True
     flat = points[low] - np.outer(points[low] @ up, up)
     hl = h[low]
     voxel = max(spacing, 0.004)

@@ -360,10 +360,9 @@ class _LevelTree:
     def thickest_stretch(self) -> tuple[Array, float] | None:
         """The principal axis of the plant's thickest stretch (on a plant, its trunk): the run
         of nodes along the thickest node's chain at least `THICK_SHARE` of its radius (each a
-        median of 5 along the chain; one chain, so that a Y's two arms do not make it level),
-        pointing from its middle towards the plant's mass, and the angle (degrees) between the
-        two; None when the run has fewer than 3 nodes."""
-        best: tuple[float, list[int], int] | None = None
+        median of 5 along the chain), pointing from its middle towards the plant's mass, and
+        the angle (degrees) between the two; None when the run has fewer than 3 nodes."""
+        best: tuple[float, list[int]] | None = None
         for chain, _ in self.chains():
             rc = self.radius[chain]
             med = np.array([np.median(rc[max(0, i - 2) : i + 3]) for i in range(len(chain))])
@@ -374,7 +373,7 @@ class _LevelTree:
                     lo -= 1
                 while hi < len(chain) - 1 and med[hi + 1] >= THICK_SHARE * med[i]:
                     hi += 1
-                best = (float(med[i]), chain[lo : hi + 1], i)
+                best = (float(med[i]), chain[lo : hi + 1])
         if best is None or len(best[1]) < 3:
             return None
         Q = self.centre[best[1]]
