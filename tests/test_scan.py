@@ -489,6 +489,25 @@ def test_the_cut_rule_does_not_depend_on_where_a_skeleton_forks() -> None:
         assert np.linalg.norm(cut_a.point - cut_b.point) < 1e-3, (plant_kind, cut_a, cut_b)
 
 
+def _tree_scanned_without_ground(
+    truth: Skeleton, edge: float, seed: int, tmp_path: Path
+) -> tuple[Any, np.ndarray]:
+    """A tree scanned at the realistic quality without ground, written in a scanner's frame
+    (`scanner_frame(seed)`, metres) and analysed with the up axis left to be found: the import
+    and the transform from the truth's frame into the twin's."""
+    V, F = tube_mesh(truth, edge=edge, caps="round")
+    P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], seed)
+    T_sv = scanner_frame(seed)
+    f = _ply_cloud(tmp_path / "tree.ply", P @ T_sv[:3, :3].T + T_sv[:3, 3])
+    scan = analyse_scan(f, ScanImportConfig(plant="tree"))
+    return scan, scan.T_vine_scan @ T_sv
+
+
+def _degrees_off_up(T: np.ndarray) -> float:
+    """How far (degrees) the transform `T` tilts the vertical."""
+    return float(np.degrees(np.arccos(np.clip(T[2, 2], -1, 1))))
+
+
 def test_a_tree_scanned_without_ground_stands_up_and_its_skeleton_matches(
     tmp_path: Path,
 ) -> None:
@@ -500,13 +519,8 @@ def test_a_tree_scanned_without_ground_stands_up_and_its_skeleton_matches(
     def truth() -> Skeleton:
         return read_cylinders(shared("trees", "tree-models-library", "Apple_YTrellisL.txt"))
 
-    V, F = tube_mesh(truth(), edge=0.003, caps="round")
-    P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], 0)
-    T_sv = scanner_frame(0)
-    f = _ply_cloud(tmp_path / "tree.ply", P @ T_sv[:3, :3].T + T_sv[:3, 3])
-    scan = analyse_scan(f, ScanImportConfig(plant="tree"))
-    T = scan.T_vine_scan @ T_sv
-    assert np.degrees(np.arccos(np.clip(T[2, 2], -1, 1))) < 1.0, scan.up_from
+    scan, T = _tree_scanned_without_ground(truth(), 0.003, 0, tmp_path)
+    assert _degrees_off_up(T) < 1.0, scan.up_from
     assert "the trunk's direction" in scan.up_from and not scan.notes, (scan.up_from, scan.notes)
     acc = skeleton_accuracy(scan.skeleton, transform_skeleton(truth(), T), "tree", 0.07)
     assert acc.completeness >= 0.9 and acc.precision >= 0.9, acc
@@ -533,13 +547,8 @@ def test_a_foot_taken_at_a_crown_tip_is_turned_upright_and_said(
 
     monkeypatch.setattr(skz._LevelTree, "thickest_end_points", crown_tip)
     truth = read_cylinders(shared("trees", "tree-models-library", "Apple_1_TallSpindle.txt"))
-    V, F = tube_mesh(truth, edge=0.004, caps="round")
-    P, _ = simulate_scan(V, F, QUALITY_LADDER["realistic"], 1)
-    T_sv = scanner_frame(1)
-    f = _ply_cloud(tmp_path / "tree.ply", P @ T_sv[:3, :3].T + T_sv[:3, 3])
-    scan = analyse_scan(f, ScanImportConfig(plant="tree"))
-    T = scan.T_vine_scan @ T_sv
-    assert np.degrees(np.arccos(np.clip(T[2, 2], -1, 1))) < 1.0, scan.up_from
+    scan, T = _tree_scanned_without_ground(truth, 0.004, 1, tmp_path)
+    assert _degrees_off_up(T) < 1.0, scan.up_from
     assert "thickest stretch" in scan.up_from, scan.up_from
     assert any("up axis is uncertain" in n for n in scan.notes), scan.notes
 

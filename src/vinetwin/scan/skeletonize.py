@@ -217,6 +217,7 @@ class _LevelTree:
         self.roots = [c for c in range(n) if parent[c] < 0]
         self.end_window = 0.1
         """How far from an end its thickness is measured (m)."""
+        self._chains: list[tuple[list[int], int]] | None = None
 
     def _ahead(self, k: int, steps: int = 3) -> Array:
         """The centre a few nodes down k's farthest-reaching path."""
@@ -242,7 +243,10 @@ class _LevelTree:
         thickest child heading on most nearly in the chain's direction continues it (the score
         radius * (1 + cos angle) / 2: a cordon continues a trunk rather than a cane rising from
         its head, and runs on to its own end past its last spur's cane); the others start new
-        chains."""
+        chains. Found once: the foot, the up axis and the skeleton all ask (the tree does not
+        change after it is built)."""
+        if self._chains is not None:
+            return self._chains
         out: list[tuple[list[int], int]] = []
         stack = [(r, -1) for r in self.roots]
         while stack:
@@ -273,6 +277,7 @@ class _LevelTree:
                 c = nxt
                 chain.append(c)
             out.append((chain, pchain))
+        self._chains = out
         return out
 
     def thickest_end_points(self) -> np.ndarray:
@@ -360,12 +365,11 @@ class _LevelTree:
     def thickest_stretch(self) -> tuple[Array, float] | None:
         """The principal axis of the plant's thickest stretch (on a plant, its trunk): the run
         of nodes along the thickest node's chain at least `THICK_SHARE` of its radius (each a
-        median of 5 along the chain), pointing from its middle towards the plant's mass, and
+        median of 5 along the chain, `median5`), pointing from its middle towards the plant's mass, and
         the angle (degrees) between the two; None when the run has fewer than 3 nodes."""
         best: tuple[float, list[int]] | None = None
         for chain, _ in self.chains():
-            rc = self.radius[chain]
-            med = np.array([np.median(rc[max(0, i - 2) : i + 3]) for i in range(len(chain))])
+            med = median5(self.radius[chain])
             i = int(np.argmax(med))
             if best is None or med[i] > best[0]:
                 lo, hi = i, i
